@@ -1,0 +1,41 @@
+"""The `orbitar` command line: one entry point, subcommands added by each part of the system."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from importlib.metadata import PackageNotFoundError, version
+
+
+def _version() -> str:
+    """Installed distribution version."""
+    try:
+        return version("orbitar")
+    except PackageNotFoundError:
+        return "0+unknown"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser with every subcommand."""
+    parser = argparse.ArgumentParser(prog="orbitar", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"orbitar {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    demo = sub.add_parser("demo", help="run the paper's experiments on the built-in simulator")
+    demo.add_argument("--quick", action="store_true", help="a shorter run")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse arguments and run the chosen subcommand."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "demo":
+        print("orbitar demo: the simulator-backed demo is not built yet; see README.md.")
+        return 0
+    parser.print_help()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

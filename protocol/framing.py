@@ -1,0 +1,148 @@
+"""Frames on the wire: header + payload + CRC, COBS-encoded, delimited by 0x00.
+
+    wire  = COBS(raw) 0x00
+    raw   = version u8 | flags u8 | seq u16 LE | msg_id u8 | payload | crc16 BE
+    crc16 = CRC-16/IBM-3740 over version..payload, sent most significant byte first
+
+Sending the CRC big-endian lets a receiver check the whole raw frame in one call: the CRC of
+data followed by its own CRC is zero. The decoder never raises; it counts and drops.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+from protocol import cobs
+from protocol.codec import PayloadError, decode_payload, encode_payload, known_id
+from protocol.crc import crc16
+from protocol.schema import (
+    CRC_SIZE,
+    HEADER_FORMAT,
+    HEADER_SIZE,
+    MAX_RAW_FRAME,
+    MAX_WIRE_FRAME,
+    PROTOCOL_VERSION,
+    Flag,
+)
+
+DELIMITER = b"\x00"
+_HEADER = struct.Struct(HEADER_FORMAT)
+_MIN_RAW = HEADER_SIZE + CRC_SIZE
+
+
+@dataclass(slots=True)
+class Packet:
+    """One decoded frame: header fields and the typed message."""
+
+    seq: int
+    flags: int
+    message: object
+
+
+@dataclass
+class DropCounters:
+    """Why frames were dropped; every dropped frame lands in exactly one counter."""
+
+    bad_crc: int = 0
+    bad_cobs: int = 0
+    bad_length: int = 0
+    bad_version: int = 0
+    unknown_id: int = 0
+    bad_payload: int = 0
+    oversize: int = 0
+
+    def total(self) -> int:
+        """All dropped frames."""
+        return sum(vars(self).values())
+
+
+def encode_frame(message: object, seq: int, flags: int = Flag.NONE) -> bytes:
+    """Message → wire bytes, trailing delimiter included; ValueError if it cannot be sent."""
+    if not 0 <= seq <= 0xFFFF:
+        raise ValueError(f"seq={seq} outside [0, 65535]")
+    msg_id, payload = encode_payload(message)
+    raw = _HEADER.pack(PROTOCOL_VERSION, int(flags), seq, msg_id) + payload
+    raw += crc16(raw).to_bytes(2, "big")
+    if len(raw) > MAX_RAW_FRAME:
+        raise ValueError(f"frame of {len(raw)} bytes exceeds {MAX_RAW_FRAME}")
+    return cobs.encode(raw) + DELIMITER
+
+
+@dataclass
+class FrameDecoder:
+    """Incremental decoder: feed any chunks of the byte stream, get the packets in them."""
+
+    max_wire_frame: int = MAX_WIRE_FRAME
+    drops: DropCounters = field(default_factory=DropCounters)
+    frames_ok: int = 0
+    bytes_in: int = 0
+    _buf: bytearray = field(default_factory=bytearray)
+    _discarding: bool = False
+
+    def feed(self, data: bytes) -> list[Packet]:
+        """Consume bytes; return every good packet completed by them, in order."""
+        self.bytes_in += len(data)
+        self._buf += data
+        if DELIMITER not in data:
+            self._check_oversize()
+            return []
+        *complete, rest = self._buf.split(DELIMITER)
+        self._buf = bytearray(rest)
+        out: list[Packet] = []
+        for enc in complete:
+            if self._discarding:
+                # The tail of an oversize frame: its delimiter ends the discard.
+                self._discarding = False
+                continue
+            if not enc:
+                continue  # back-to-back delimiters are idle fill, not errors
+            if len(enc) > self.max_wire_frame - 1:
+                self.drops.oversize += 1
+                continue
+            packet = self._decode(enc)
+            if packet is not None:
+                out.append(packet)
+        self._check_oversize()
+        return out
+
+    def reset(self) -> None:
+        """Forget any partial frame (after a reconnect)."""
+        self._buf.clear()
+        self._discarding = False
+
+    def _check_oversize(self) -> None:
+        """Drop a partial frame that has already outgrown the largest legal frame."""
+        if len(self._buf) > self.max_wire_frame - 1:
+            if not self._discarding:
+                self.drops.oversize += 1
+            self._discarding = True
+            self._buf.clear()
+
+    def _decode(self, enc: bytes) -> Packet | None:
+        """One delimited frame → packet, or None with the reason counted."""
+        try:
+            raw = cobs.decode(enc)
+        except cobs.CobsError:
+            self.drops.bad_cobs += 1
+            return None
+        if len(raw) < _MIN_RAW:
+            self.drops.bad_length += 1
+            return None
+        if crc16(raw) != 0:
+            self.drops.bad_crc += 1
+            return None
+        version, flags, seq, msg_id = _HEADER.unpack_from(raw)
+        if version != PROTOCOL_VERSION:
+            self.drops.bad_version += 1
+            return None
+        if not known_id(msg_id):
+            self.drops.unknown_id += 1
+            return None
+        try:
+            msg = decode_payload(msg_id, raw[: len(raw) - CRC_SIZE], HEADER_SIZE)
+        except PayloadError:
+            self.drops.bad_payload += 1
+            return None
+        self.frames_ok += 1
+        return Packet(seq, flags, msg)
