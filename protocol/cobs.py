@@ -23,7 +23,7 @@ def encode(data: bytes) -> bytes:
     return bytes(out)
 
 
-def decode(enc: bytes) -> bytes:
+def decode(enc: bytes | bytearray) -> bytes:
     """Decode one COBS block sequence (no delimiter); raise CobsError when malformed."""
     n = len(enc)
     if n == 0:
@@ -48,7 +48,7 @@ def decode(enc: bytes) -> bytes:
     return bytes(out)
 
 
-def _decode_slow(enc: bytes) -> bytes:
+def _decode_slow(enc: bytes | bytearray) -> bytes:
     """Block-by-block decode, used when a 0xFF code (a 254-byte run without zeros) appears."""
     out = bytearray()
     i, n = 0, len(enc)

@@ -119,7 +119,7 @@ class FrameDecoder:
             self._discarding = True
             self._buf.clear()
 
-    def _decode(self, enc: bytes) -> Packet | None:
+    def _decode(self, enc: bytes | bytearray) -> Packet | None:
         """One delimited frame → packet, or None with the reason counted."""
         try:
             raw = cobs.decode(enc)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Annotated
 
 from protocol.enums import Fault, Inputs, LogLevel, NakCode, State, Stream
-from protocol.schema import I8, I32, TEXT, U8, U16, U32, Direction, field, message
+from protocol.schema import I32, TEXT, U8, U16, U32, Direction, field, message
 
 H2C = Direction.TO_CONTROLLER
 C2H = Direction.TO_HOST
@@ -74,9 +74,7 @@ class MoveTo:
 
     position_um: Annotated[int, field(I32, "µm", "target arc length from home")]
     speed_um_s: Annotated[int, field(U32, "µm/s", "cruise speed limit", lo=1, hi=MAX_SPEED)]
-    accel_um_s2: Annotated[
-        int, field(U32, "µm/s²", "acceleration limit", lo=1, hi=MAX_ACCEL)
-    ]
+    accel_um_s2: Annotated[int, field(U32, "µm/s²", "acceleration limit", lo=1, hi=MAX_ACCEL)]
 
 
 @message(0x12, H2C, acked=True, reply="ACK")
@@ -86,9 +84,7 @@ class Jog:
     velocity_um_s: Annotated[
         int, field(I32, "µm/s", "signed target velocity", lo=-MAX_SPEED, hi=MAX_SPEED)
     ]
-    accel_um_s2: Annotated[
-        int, field(U32, "µm/s²", "acceleration limit", lo=1, hi=MAX_ACCEL)
-    ]
+    accel_um_s2: Annotated[int, field(U32, "µm/s²", "acceleration limit", lo=1, hi=MAX_ACCEL)]
 
 
 @message(0x13, H2C, acked=True, reply="ACK")

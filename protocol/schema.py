@@ -197,15 +197,26 @@ def message(
         dc = dataclasses.dataclass(slots=True)(cls)
         hints = typing.get_type_hints(dc, include_extras=True)
         fields: list[FieldSpec] = []
-        for f in dataclasses.fields(dc):
-            meta = [m for m in getattr(hints[f.name], "__metadata__", ()) if isinstance(m, FieldInfo)]
+        for f in dataclasses.fields(dc):  # type: ignore[arg-type]
+            meta = [
+                m for m in getattr(hints[f.name], "__metadata__", ()) if isinstance(m, FieldInfo)
+            ]
             if len(meta) != 1:
                 raise TypeError(f"{cls.__name__}.{f.name} needs exactly one field(...) annotation")
             fields.append(FieldSpec(f.name, meta[0]))
         doc = (dc.__doc__ or "").strip()
         SCHEMA.add(
-            MessageSpec(msg_id, _snake(dc.__name__), direction, acked, reply, doc,
-                        tuple(fields), dc, max_text)
+            MessageSpec(
+                msg_id,
+                _snake(dc.__name__),
+                direction,
+                acked,
+                reply,
+                doc,
+                tuple(fields),
+                dc,
+                max_text,
+            )
         )
         return dc
 
