@@ -1,0 +1,1 @@
+"""Link backends behind one interface, chosen by name (see `base.Transport`)."""

@@ -1,0 +1,131 @@
+"""The transport contract: move whole wire frames between the host and the controller.
+
+A transport knows nothing of messages. `send` takes one encoded wire frame (COBS bytes and the
+trailing 0x00 delimiter, as `protocol.encode_frame` returns); received bytes go to the receiver
+callback as a byte stream that `protocol.FrameDecoder.feed` accepts (datagram transports hand
+over whole frames, serial ones any chunk). Subclasses fill the `_open`, `_write` and `_close`
+hooks; the base class owns the public methods, the state and the statistics.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+Receiver = Callable[[bytes], None]
+LostHandler = Callable[[Exception | None], None]
+
+
+class TransportError(ConnectionError):
+    """The link cannot be opened or used; the message says which device and why."""
+
+
+class LinkState(enum.Enum):
+    """Where a transport is in its life."""
+
+    CLOSED = "closed"
+    OPENING = "opening"
+    OPEN = "open"
+    LOST = "lost"
+
+
+@dataclass
+class TransportStats:
+    """Counters every transport keeps; backends add their own under `extra`."""
+
+    frames_out: int = 0
+    bytes_out: int = 0
+    chunks_in: int = 0
+    bytes_in: int = 0
+    write_errors: int = 0
+    opens: int = 0
+    losses: int = 0
+    extra: dict[str, int] = field(default_factory=dict)
+
+    def bump(self, key: str, n: int = 1) -> None:
+        """Increment a backend-specific counter."""
+        self.extra[key] = self.extra.get(key, 0) + n
+
+
+class Transport(abc.ABC):
+    """Base class of every link backend (serial, XBee, CAN)."""
+
+    scheme: ClassVar[str]  # backend name used in config and BACKENDS
+
+    def __init__(self) -> None:
+        self.stats = TransportStats()
+        self.state = LinkState.CLOSED
+        self._receiver: Receiver | None = None
+        self._on_lost: LostHandler | None = None
+
+    def set_receiver(self, receiver: Receiver, on_lost: LostHandler | None = None) -> None:
+        """Route received bytes (and the news of a lost link) to the session."""
+        self._receiver = receiver
+        self._on_lost = on_lost
+
+    async def open(self) -> None:
+        """Open the link; TransportError with the reason if the device is not there."""
+        self.state = LinkState.OPENING
+        try:
+            await self._open()
+        except TransportError:
+            self.state = LinkState.CLOSED
+            raise
+        except (OSError, ValueError) as exc:
+            self.state = LinkState.CLOSED
+            raise TransportError(f"{self.describe()}: {exc}") from exc
+        self.state = LinkState.OPEN
+        self.stats.opens += 1
+
+    async def close(self) -> None:
+        """Close the link; safe to call twice or on a lost link."""
+        if self.state is not LinkState.CLOSED:
+            self.state = LinkState.CLOSED
+            await self._close()
+
+    def send(self, frame: bytes) -> None:
+        """Queue one wire frame for sending without blocking; TransportError when not open."""
+        if self.state is not LinkState.OPEN:
+            raise TransportError(f"{self.describe()} is {self.state.value}")
+        try:
+            self._write(frame)
+        except (OSError, ValueError) as exc:
+            self.stats.write_errors += 1
+            self._lost(exc)
+            raise TransportError(f"{self.describe()}: {exc}") from exc
+        self.stats.frames_out += 1
+        self.stats.bytes_out += len(frame)
+
+    @abc.abstractmethod
+    def describe(self) -> str:
+        """Human-readable name of the link, e.g. 'serial /dev/ttyUSB0 @115200'."""
+
+    @abc.abstractmethod
+    async def _open(self) -> None:
+        """Backend hook: open the device and start delivering bytes to `_deliver`."""
+
+    @abc.abstractmethod
+    def _write(self, frame: bytes) -> None:
+        """Backend hook: hand one wire frame to the device without blocking."""
+
+    @abc.abstractmethod
+    async def _close(self) -> None:
+        """Backend hook: release the device."""
+
+    def _deliver(self, data: bytes) -> None:
+        """Backends call this with received bytes."""
+        self.stats.chunks_in += 1
+        self.stats.bytes_in += len(data)
+        if self._receiver is not None:
+            self._receiver(data)
+
+    def _lost(self, exc: Exception | None) -> None:
+        """Backends call this when the device went away (unplugged, bus off, radio gone)."""
+        if self.state is LinkState.OPEN:
+            self.state = LinkState.LOST
+            self.stats.losses += 1
+            if self._on_lost is not None:
+                self._on_lost(exc)
