@@ -1,0 +1,125 @@
+"""Drift correction beyond the paper: fuse sprocket odometry with absolute track references.
+
+The encoder sits on the sprocket, so it cannot see chain elongation (a scale error that grows
+with travel) or a tooth skip (a jump of one chain pitch). Absolute references do: the home
+switch, marks along the track, a rangefinder reading of a known feature. This filter estimates
+
+    s_true = offset + scale · s_encoder
+
+as a two-state Kalman filter over (offset, scale) with process noise per millimetre travelled.
+A reference whose innovation is far outside its gate but close to a whole number of chain
+pitches is taken as a tooth skip: the offset's variance is widened by that jump and the
+measurement applied, so one skip is corrected at the next reference instead of poisoning the
+scale. Other gross outliers are rejected and counted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+GATE_SIGMAS = 4.0  # innovations beyond this many σ are not taken at face value
+SKIP_TOLERANCE_MM = 2.0  # how near a whole number of pitches a jump must be to be a skip
+
+
+@dataclass(frozen=True)
+class ChainFilterConfig:
+    """Noise model and references; lengths in mm."""
+
+    chain_pitch_mm: float = 12.7
+    scale_sigma0: float = 0.01  # prior σ of the chain scale (1 %: worn chains stretch ≲ 3 %)
+    offset_sigma0_mm: float = 1.0  # prior σ of the offset after homing
+    scale_walk_per_m: float = 1e-5  # scale random walk, σ per √m of travel
+    offset_walk_mm_per_m: float = 0.02  # offset random walk, mm per √m of travel
+    reference_sigma_mm: float = 0.1  # σ of one reference detection
+    association_gate_mm: float = 300.0  # farthest a reference may be from the prediction
+    max_skip_teeth: int = 3
+
+
+@dataclass
+class FilterStats:
+    """What the filter has done, for the report and the link statistics."""
+
+    updates: int = 0
+    skips_detected: int = 0
+    rejected: int = 0
+    unassociated: int = 0
+
+
+@dataclass
+class ChainFilter:
+    """Kalman filter over (offset, scale) mapping encoder arc length to true arc length."""
+
+    config: ChainFilterConfig = field(default_factory=ChainFilterConfig)
+    x: FloatArray = field(default_factory=lambda: np.array([0.0, 1.0]))
+    p: FloatArray = field(default_factory=lambda: np.zeros((2, 2)))
+    stats: FilterStats = field(default_factory=FilterStats)
+    _last_enc_mm: float | None = None
+
+    def __post_init__(self) -> None:
+        c = self.config
+        self.p = np.diag([c.offset_sigma0_mm**2, c.scale_sigma0**2])
+
+    def predict(self, enc_mm: float) -> None:
+        """Grow the uncertainty with the travel since the last call."""
+        if self._last_enc_mm is not None:
+            travel_m = abs(enc_mm - self._last_enc_mm) / 1000.0
+            c = self.config
+            self.p = self.p + np.diag(
+                [c.offset_walk_mm_per_m**2 * travel_m, c.scale_walk_per_m**2 * travel_m]
+            )
+        self._last_enc_mm = enc_mm
+
+    def estimate(self, enc_mm: float) -> tuple[float, float]:
+        """True arc length for an encoder reading, and its σ in mm."""
+        h = np.array([1.0, enc_mm])
+        return float(h @ self.x), math.sqrt(max(float(h @ self.p @ h), 0.0))
+
+    def reference(self, enc_mm: float, true_mm: float, sigma_mm: float | None = None) -> bool:
+        """Apply one absolute reference (the encoder read enc_mm at true position true_mm)."""
+        self.predict(enc_mm)
+        r = (sigma_mm if sigma_mm is not None else self.config.reference_sigma_mm) ** 2
+        h = np.array([1.0, enc_mm])
+        innovation = true_mm - float(h @ self.x)
+        s = float(h @ self.p @ h) + r
+        if innovation**2 > GATE_SIGMAS**2 * s:
+            if not self._accept_skip(innovation):
+                self.stats.rejected += 1
+                return False
+            s = float(h @ self.p @ h) + r
+        gain = self.p @ h / s
+        self.x = self.x + gain * innovation
+        self.p = (np.eye(2) - np.outer(gain, h)) @ self.p
+        self.p = 0.5 * (self.p + self.p.T)
+        self.stats.updates += 1
+        return True
+
+    def associate(self, enc_mm: float, marks_mm: tuple[float, ...]) -> float | None:
+        """The reference mark nearest the predicted position, if inside the gate."""
+        if not marks_mm:
+            return None
+        predicted, _ = self.estimate(enc_mm)
+        nearest = min(marks_mm, key=lambda m: abs(m - predicted))
+        if abs(nearest - predicted) > self.config.association_gate_mm:
+            self.stats.unassociated += 1
+            return None
+        return nearest
+
+    def _accept_skip(self, innovation: float) -> bool:
+        """Widen the offset variance when the jump looks like whole tooth skips."""
+        pitch = self.config.chain_pitch_mm
+        teeth = round(innovation / pitch)
+        if teeth == 0 or abs(teeth) > self.config.max_skip_teeth:
+            return False
+        if abs(innovation - teeth * pitch) > SKIP_TOLERANCE_MM + GATE_SIGMAS * math.sqrt(
+            self.p[0, 0]
+        ):
+            return False
+        self.p[0, 0] += innovation**2
+        self.stats.skips_detected += 1
+        return True
