@@ -1,0 +1,32 @@
+"""The report writes a page that stands alone and a results.json that parses."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from host.demo.report import Report
+
+
+def test_report_writes_html_with_inlined_images_and_json(tmp_path: Path) -> None:
+    rep = Report("t")
+    rep.add_text("intro", "first\n\nsecond <b>")
+    rep.add_table("tab", ["a", "b"], [[1, 2.5], ["x", float("nan")]])
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    rep.add_figure("fig", fig)
+    rep.add_image("snap", np.zeros((8, 8, 3), np.uint8))
+    rep.results = {"rms": np.float64(0.25), "arr": np.arange(3), "bad": float("nan")}
+    page = rep.write(tmp_path / "out")
+    text = page.read_text()
+    assert text.count("data:image/png;base64,") == 2
+    assert "&lt;b&gt;" in text
+    assert 'src="http' not in text
+    data = json.loads((tmp_path / "out" / "results.json").read_text())
+    assert data == {"rms": 0.25, "arr": [0, 1, 2], "bad": None}
