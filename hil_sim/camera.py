@@ -1,0 +1,170 @@
+"""Synthetic camera for the simulator: renders the true scene with the true optics.
+
+Frames keep their ground truth (true T_w_c, true projected points). Model edges are subdivided
+before projection so distortion bends them as a real lens would. The chessboard is ray-cast: each
+pixel is undistorted once (cached per camera), intersected with the board plane and sampled from
+a supersampled board texture, so corners carry the true distortion for calibration tests.
+Deterministic for a given seed. Imports only the shared math in host.geometry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import numpy.typing as npt
+
+from host.geometry.camera import CameraModel
+from host.geometry.model import Wireframe
+from host.geometry.transforms import FloatArray, invert_T, transform_points
+
+UInt8Image = npt.NDArray[np.uint8]
+
+BACKGROUND_BGR = (110, 110, 110)
+EDGE_BGR = (0, 200, 255)  # orange-yellow, distinct from the host overlay's green
+EDGE_SUBDIVISIONS = 8  # pieces per model edge, so distortion curves them
+NOISE_SIGMA_DN = 1.5  # Gaussian pixel noise, grey levels
+TEXTURE_PX_PER_SQUARE = 64  # board texture resolution
+BOARD_MARGIN_SQUARES = 1.0  # white border around the squares, in squares
+TEXTURED_POINT_RADIUS_PX = 3
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """A rendered frame and its ground truth."""
+
+    image: UInt8Image
+    T_w_c: FloatArray
+    vertices_uv: FloatArray  # (N,2) true pixels of the model vertices, NaN if behind
+    points_uv: FloatArray  # (P,2) true pixels of the textured points, NaN if behind
+
+
+@dataclass(frozen=True)
+class ChessboardFrame:
+    """A rendered chessboard view and its ground truth."""
+
+    image: UInt8Image
+    T_c_b: FloatArray
+    corners_uv: FloatArray  # (rows*cols, 2) inner corners in OpenCV's order, row-major
+    visible: bool  # every inner corner inside the image and in front of the camera
+
+
+@dataclass
+class SyntheticCamera:
+    """Renders scenes and chessboards through a true camera model, seeded noise."""
+
+    camera: CameraModel
+    seed: int = 0
+    noise_sigma_dn: float = NOISE_SIGMA_DN
+    _rng: np.random.Generator = field(init=False, repr=False)
+    _rays: FloatArray | None = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+
+    def render_scene(
+        self,
+        T_w_c: FloatArray,
+        model: Wireframe,
+        T_w_p: FloatArray,
+        textured_points_p: FloatArray | None = None,
+    ) -> SceneFrame:
+        """Grey background, model edges (in workpiece frame p) and textured points."""
+        T_c_p = invert_T(T_w_c) @ T_w_p
+        img = np.empty((self.camera.height, self.camera.width, 3), dtype=np.uint8)
+        img[:] = BACKGROUND_BGR
+        self._draw_edges(img, T_c_p, model)
+        pts = np.zeros((0, 3)) if textured_points_p is None else textured_points_p
+        pts_uv, _ = self.camera.project(transform_points(T_c_p, pts))
+        self._draw_points(img, pts_uv)
+        verts_uv, _ = self.camera.project(transform_points(T_c_p, model.vertices))
+        return SceneFrame(self._noisy(img), np.array(T_w_c, dtype=np.float64), verts_uv, pts_uv)
+
+    def render_chessboard(
+        self, T_c_b: FloatArray, pattern: tuple[int, int], square_mm: float
+    ) -> ChessboardFrame:
+        """A board of `pattern` = (cols, rows) inner corners, board frame at the first corner."""
+        cols, rows = pattern
+        H = self._board_map(T_c_b, square_mm)
+        tex = _board_texture(cols, rows)
+        img = cv2.remap(tex, H[0], H[1], cv2.INTER_LINEAR, borderValue=BACKGROUND_BGR[0])
+        img3: UInt8Image = np.asarray(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+        corners = chessboard_points(pattern, square_mm)
+        pc = transform_points(T_c_b, corners)
+        uv, valid = self.camera.project(pc)
+        inside = (uv[:, 0] > 0) & (uv[:, 0] < self.camera.width - 1)
+        inside &= (uv[:, 1] > 0) & (uv[:, 1] < self.camera.height - 1)
+        visible = bool(np.all(valid & inside))
+        return ChessboardFrame(self._noisy(img3), np.array(T_c_b, dtype=np.float64), uv, visible)
+
+    def _draw_edges(self, img: UInt8Image, T_c_p: FloatArray, model: Wireframe) -> None:
+        """Draw subdivided edges, skipping pieces with an end behind the camera."""
+        v = model.vertices
+        a, b = v[model.edges[:, 0]], v[model.edges[:, 1]]
+        f = np.linspace(0.0, 1.0, EDGE_SUBDIVISIONS + 1)
+        pts = a[:, None, :] + f[None, :, None] * (b - a)[:, None, :]
+        uv, valid = self.camera.project(transform_points(T_c_p, pts))
+        lines = []
+        for k in range(len(uv)):
+            for j in range(EDGE_SUBDIVISIONS):
+                if valid[k, j] and valid[k, j + 1] and np.all(np.abs(uv[k, j : j + 2]) < 1e5):
+                    lines.append(np.rint(uv[k, j : j + 2] * 16).astype(np.int32))
+        if lines:
+            cv2.polylines(img, lines, False, EDGE_BGR, 2, cv2.LINE_AA, 4)
+
+    def _draw_points(self, img: UInt8Image, uv: FloatArray) -> None:
+        """Small filled discs of seeded random colours at the textured points."""
+        colors = self._rng.integers(0, 256, size=(len(uv), 3))
+        for (u, v), c in zip(uv, colors, strict=True):
+            if np.isfinite(u) and np.isfinite(v) and abs(u) < 1e5 and abs(v) < 1e5:
+                center = (round(float(u) * 16), round(float(v) * 16))
+                color = (int(c[0]), int(c[1]), int(c[2]))
+                cv2.circle(img, center, TEXTURED_POINT_RADIUS_PX * 16, color, -1, cv2.LINE_AA, 4)
+
+    def _noisy(self, img: UInt8Image) -> UInt8Image:
+        """Add seeded Gaussian noise and clip back to uint8."""
+        if self.noise_sigma_dn <= 0.0:
+            return img
+        noise = self._rng.normal(0.0, self.noise_sigma_dn, img.shape)
+        return np.clip(img + noise, 0, 255).astype(np.uint8)
+
+    def _pixel_rays(self) -> FloatArray:
+        """Undistorted normalised coordinates (H, W, 2) of every pixel, computed once."""
+        if self._rays is None:
+            u, v = np.meshgrid(np.arange(self.camera.width), np.arange(self.camera.height))
+            self._rays = self.camera.undistort_normalized(np.stack([u, v], axis=-1).astype(float))
+        return self._rays
+
+    def _board_map(self, T_c_b: FloatArray, square_mm: float) -> npt.NDArray[np.float32]:
+        """Texture coordinates (2, H, W) seen by each pixel through the board-plane homography."""
+        n = self._pixel_rays()
+        # Pixel ray (x, y, 1) meets the plane z_b = 0: H maps board (X, Y, 1) to the ray.
+        Hm = np.column_stack([T_c_b[:3, 0], T_c_b[:3, 1], T_c_b[:3, 3]])
+        Hi = np.linalg.inv(Hm)
+        w = Hi[2, 0] * n[..., 0] + Hi[2, 1] * n[..., 1] + Hi[2, 2]
+        X = (Hi[0, 0] * n[..., 0] + Hi[0, 1] * n[..., 1] + Hi[0, 2]) / w
+        Y = (Hi[1, 0] * n[..., 0] + Hi[1, 1] * n[..., 1] + Hi[1, 2]) / w
+        scale = TEXTURE_PX_PER_SQUARE / square_mm
+        off = (BOARD_MARGIN_SQUARES + 1.0) * TEXTURE_PX_PER_SQUARE - 0.5
+        mx, my = X * scale + off, Y * scale + off
+        behind = w <= 0.0  # the ray meets the plane behind the camera
+        mx[behind] = my[behind] = -1e6
+        return np.stack([mx, my]).astype(np.float32)
+
+
+def chessboard_points(pattern: tuple[int, int], square_mm: float) -> FloatArray:
+    """Inner corners (cols*rows, 3) in the board frame, row-major as OpenCV detects them."""
+    cols, rows = pattern
+    gx, gy = np.meshgrid(np.arange(cols), np.arange(rows))
+    grid = np.stack([gx.ravel(), gy.ravel(), np.zeros(cols * rows)], axis=1)
+    return grid.astype(np.float64) * square_mm
+
+
+def _board_texture(cols: int, rows: int) -> UInt8Image:
+    """Grey-level board: (cols+1) x (rows+1) squares with a white margin."""
+    s, m = TEXTURE_PX_PER_SQUARE, int(BOARD_MARGIN_SQUARES * TEXTURE_PX_PER_SQUARE)
+    iy, ix = np.indices((rows + 1, cols + 1))
+    squares = np.where((ix + iy) % 2 == 0, 20, 235).astype(np.uint8)
+    tex = np.kron(squares, np.ones((s, s), dtype=np.uint8))
+    return np.pad(tex, m, constant_values=235)

@@ -1,0 +1,222 @@
+"""Time-indexed sample buffers and the camera pose at a frame's exposure time.
+
+Samples are stamped in host monotonic nanoseconds. A lookup interpolates between the two samples
+around the query time; past the newest sample it extrapolates at most `horizon_ns`, and before
+the oldest retained sample it refuses. Results say ok / stale / empty and never carry a guess.
+
+Joint samples (track s, head pan/tilt) are interpolated linearly in joint space, which is exact
+for the kinematic chain; `TransformBuffer` holds whole poses and interpolates them as ROS tf2
+does (slerp on rotation, linear on translation), for pose streams without joint values.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+import numpy.typing as npt
+
+from host.geometry.head import Rig
+from host.geometry.transforms import FloatArray, R_from_quat, make_T, quat_from_R, slerp
+
+Int64Array = npt.NDArray[np.int64]
+
+DEFAULT_CAPACITY = 4096  # samples kept per buffer (≈ 4 s of a 1 kHz encoder stream)
+DEFAULT_HORIZON_NS = 20_000_000  # extrapolate at most 20 ms past the newest sample
+DEFAULT_MAX_GAP_NS = 100_000_000  # refuse to bridge a hole in the stream longer than 100 ms
+
+
+class LookupStatus(Enum):
+    """Outcome of a buffer lookup."""
+
+    OK = "ok"
+    STALE = "stale"  # before the oldest sample, past the horizon, or across a gap
+    EMPTY = "empty"
+
+
+@dataclass(frozen=True)
+class Lookup:
+    """Interpolated value at `t_ns`, or the reason there is none (`value` is then None)."""
+
+    status: LookupStatus
+    t_ns: int
+    value: FloatArray | None = None
+    extrapolated_ns: int = 0  # how far past the newest sample the value was carried
+
+    @property
+    def ok(self) -> bool:
+        """True when a value is present."""
+        return self.status is LookupStatus.OK
+
+
+class SampleBuffer:
+    """Ring buffer of (host time ns, k float channels) with linear interpolation."""
+
+    def __init__(
+        self,
+        channels: int,
+        capacity: int = DEFAULT_CAPACITY,
+        horizon_ns: int = DEFAULT_HORIZON_NS,
+        max_gap_ns: int = DEFAULT_MAX_GAP_NS,
+    ) -> None:
+        if capacity < 2 or channels < 1 or horizon_ns < 0 or max_gap_ns <= 0:
+            raise ValueError("need capacity ≥ 2, channels ≥ 1, horizon ≥ 0, max_gap > 0")
+        self.capacity, self.horizon_ns, self.max_gap_ns = capacity, horizon_ns, max_gap_ns
+        # Every sample is written twice (at i and i + capacity) so the retained window is always
+        # one contiguous slice, which keeps lookups a single searchsorted without copying.
+        self._t: Int64Array = np.zeros(2 * capacity, dtype=np.int64)
+        self._v: FloatArray = np.zeros((2 * capacity, channels))
+        self._start = 0
+        self._count = 0
+        self.rejected = 0  # samples dropped for going back in time
+
+    def __len__(self) -> int:
+        return self._count
+
+    def push(self, t_ns: int, values: npt.ArrayLike) -> bool:
+        """Append a sample; returns False (and counts it) if it is not newer than the last."""
+        if self._count and t_ns <= self._t[self._start + self._count - 1]:
+            self.rejected += 1
+            return False
+        i = (self._start + self._count) % self.capacity
+        self._t[i] = self._t[i + self.capacity] = t_ns
+        self._v[i] = self._v[i + self.capacity] = values
+        if self._count < self.capacity:
+            self._count += 1
+        else:
+            self._start = (self._start + 1) % self.capacity
+        return True
+
+    def clear(self) -> None:
+        """Forget all samples (e.g. after a re-home or a clock resync)."""
+        self._start = self._count = 0
+
+    def window(self) -> tuple[Int64Array, FloatArray]:
+        """Views of the retained times and values, oldest first."""
+        sl = slice(self._start, self._start + self._count)
+        return self._t[sl], self._v[sl]
+
+    def lookup(self, t_ns: int) -> Lookup:
+        """Value at t_ns by interpolation, or bounded extrapolation past the newest sample."""
+        if not self._count:
+            return Lookup(LookupStatus.EMPTY, t_ns)
+        t, v = self.window()
+        if t_ns < t[0]:
+            return Lookup(LookupStatus.STALE, t_ns)
+        i = int(np.searchsorted(t, t_ns, side="right"))
+        if i == len(t):
+            return self._extrapolate(t, v, t_ns)
+        t0, t1 = int(t[i - 1]), int(t[i])
+        if t1 - t0 > self.max_gap_ns:
+            return Lookup(LookupStatus.STALE, t_ns)
+        return Lookup(LookupStatus.OK, t_ns, self._blend(v[i - 1], v[i], (t_ns - t0) / (t1 - t0)))
+
+    def _extrapolate(self, t: Int64Array, v: FloatArray, t_ns: int) -> Lookup:
+        """Carry the newest sample forward along the last velocity, within the horizon."""
+        ahead = t_ns - int(t[-1])
+        if ahead > self.horizon_ns:
+            return Lookup(LookupStatus.STALE, t_ns, extrapolated_ns=ahead)
+        if ahead == 0 or len(t) < 2 or int(t[-1] - t[-2]) > self.max_gap_ns:
+            return Lookup(LookupStatus.OK, t_ns, v[-1].copy(), ahead)
+        f = 1.0 + ahead / int(t[-1] - t[-2])
+        return Lookup(LookupStatus.OK, t_ns, self._blend(v[-2], v[-1], f), ahead)
+
+    def _blend(self, a: FloatArray, b: FloatArray, f: float) -> FloatArray:
+        """Linear interpolation of channel values at fraction f (f > 1 extrapolates)."""
+        out: FloatArray = a + f * (b - a)
+        return out
+
+
+class AngleBuffer(SampleBuffer):
+    """Angles in radians: interpolates along the shorter way round (no jump at ±π)."""
+
+    def _blend(self, a: FloatArray, b: FloatArray, f: float) -> FloatArray:
+        d = np.remainder(b - a + math.pi, 2.0 * math.pi) - math.pi
+        out: FloatArray = a + f * d
+        return out
+
+
+class TransformBuffer(SampleBuffer):
+    """Whole poses T (4x4): slerp on rotation, linear on translation (as tf2)."""
+
+    def __init__(self, capacity: int = DEFAULT_CAPACITY, **kw: int) -> None:
+        super().__init__(7, capacity, **kw)
+
+    def push_T(self, t_ns: int, T: npt.ArrayLike) -> bool:
+        """Append a pose, stored as quaternion (w, x, y, z) and translation."""
+        T_ = np.asarray(T, dtype=np.float64)
+        return self.push(t_ns, np.concatenate([quat_from_R(T_[:3, :3]), T_[:3, 3]]))
+
+    def lookup_T(self, t_ns: int) -> Lookup:
+        """Like lookup, with the value as a 4x4 pose."""
+        r = self.lookup(t_ns)
+        if r.value is None:
+            return r
+        T = make_T(R_from_quat(r.value[:4]), r.value[4:])
+        return Lookup(r.status, r.t_ns, T, r.extrapolated_ns)
+
+    def _blend(self, a: FloatArray, b: FloatArray, f: float) -> FloatArray:
+        q = slerp(a[:4], b[:4], f) if 0.0 <= f <= 1.0 else _quat_extrapolate(a[:4], b[:4], f)
+        return np.concatenate([q, a[4:] + f * (b[4:] - a[4:])])
+
+
+def _quat_extrapolate(a: FloatArray, b: FloatArray, f: float) -> FloatArray:
+    """Continue the rotation from a to b by the fraction f beyond [0, 1]."""
+    Ra, Rb = R_from_quat(a), R_from_quat(b)
+    qd = quat_from_R(Rb @ Ra.T)
+    qd = qd if qd[0] >= 0.0 else -qd
+    half = math.atan2(float(np.linalg.norm(qd[1:])), float(qd[0]))
+    axis = qd[1:] / max(float(np.linalg.norm(qd[1:])), 1e-300)
+    step = np.concatenate([[math.cos(f * half)], math.sin(f * half) * axis])
+    return quat_from_R(R_from_quat(step) @ Ra)
+
+
+@dataclass(frozen=True)
+class PoseLookup:
+    """Camera pose at a frame: T_w_c plus the joint values it came from, or why not."""
+
+    status: LookupStatus
+    t_exposure_ns: int
+    T_w_c: FloatArray | None = None
+    s_mm: float = math.nan
+    pan_rad: float = math.nan
+    tilt_rad: float = math.nan
+
+    @property
+    def ok(self) -> bool:
+        """True when a pose is present."""
+        return self.status is LookupStatus.OK
+
+
+@dataclass
+class PoseSource:
+    """Camera pose at frame times from encoder and head buffers through the rig.
+
+    A head without a sensor (the paper's manual turntable) uses the fixed angles instead.
+    Encoder samples hold unwrapped arc length (a running count), so interpolation never
+    crosses the loop seam; the track wraps s when it builds the pose.
+    """
+
+    rig: Rig
+    encoder: SampleBuffer = field(default_factory=lambda: SampleBuffer(1))
+    head: AngleBuffer | None = None
+    fixed_pan_rad: float = 0.0
+    fixed_tilt_rad: float = 0.0
+    exposure_latency_ns: int = 0  # calibrated: frame timestamp minus mid-exposure time
+
+    def pose_at(self, frame_t_ns: int) -> PoseLookup:
+        """T_w_c at the exposure time of a frame stamped frame_t_ns."""
+        t = frame_t_ns - self.exposure_latency_ns
+        s = self.encoder.lookup(t)
+        if s.value is None:
+            return PoseLookup(s.status, t)
+        pan, tilt = self.fixed_pan_rad, self.fixed_tilt_rad
+        if self.head is not None:
+            h = self.head.lookup(t)
+            if h.value is None:
+                return PoseLookup(h.status, t)
+            pan, tilt = float(h.value[0]), float(h.value[1])
+        s_mm = float(s.value[0])
+        return PoseLookup(LookupStatus.OK, t, self.rig.T_w_c(s_mm, pan, tilt), s_mm, pan, tilt)
