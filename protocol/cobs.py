@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 _MAX_BLOCK = 0xFE  # data bytes one code byte can cover before a 0xFF code splits the block
+_CODE = [bytes((n,)) for n in range(256)]  # code byte objects, built once for the fast path
 
 
 class CobsError(ValueError):
@@ -11,6 +12,9 @@ class CobsError(ValueError):
 
 def encode(data: bytes) -> bytes:
     """Encode `data` so that the result contains no zero byte (delimiter not appended)."""
+    if len(data) < _MAX_BLOCK:
+        # Every frame we send: no chunk can reach 254 bytes, so no 0xFF block is possible.
+        return b"".join([_CODE[len(chunk) + 1] + chunk for chunk in data.split(b"\x00")])
     out = bytearray()
     for chunk in data.split(b"\x00"):
         # A chunk longer than 254 bytes is split by 0xFF codes, which imply no zero.

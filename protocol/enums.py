@@ -20,7 +20,7 @@ class State(enum.IntEnum):
 class Fault(enum.IntFlag):
     """Latched fault bits reported in STATUS; cleared only by CLEAR_FAULT."""
 
-    NONE = 0
+    NONE = 0  # no fault latched
     WATCHDOG = 0x0001  # no valid frame from the host within the watchdog period
     FOLLOWING_ERROR = 0x0002  # encoder and commanded steps disagree: stall or slip
     HARD_LIMIT = 0x0004  # a limit switch tripped
@@ -56,13 +56,14 @@ class Stream(enum.IntEnum):
 class Inputs(enum.IntFlag):
     """Digital inputs and position flags carried by ENCODER_SAMPLE and STATUS."""
 
-    NONE = 0
+    NONE = 0  # no input asserted
     HOME = 0x01  # home switch closed
     INDEX = 0x02  # an encoder index pulse was seen since the previous sample
     LIMIT_MIN = 0x04  # lower hard limit switch closed
     LIMIT_MAX = 0x08  # upper hard limit switch closed
     HOMED = 0x10  # position is referenced to home
     ESTOP_IN = 0x20  # e-stop input asserted
+    REF_MARK = 0x40  # an absolute reference mark along the track is under its sensor
 
 
 class LogLevel(enum.IntEnum):

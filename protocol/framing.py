@@ -10,12 +10,13 @@ data followed by its own CRC is zero. The decoder never raises; it counts and dr
 
 from __future__ import annotations
 
+import binascii
 import struct
 from dataclasses import dataclass, field
 
 from protocol import cobs
-from protocol.codec import PayloadError, decode_payload, encode_payload, known_id
-from protocol.crc import crc16
+from protocol.codec import RAW_DECODERS, PayloadError, encode_payload
+from protocol.crc import CRC_INIT, crc16
 from protocol.schema import (
     CRC_SIZE,
     HEADER_FORMAT,
@@ -28,6 +29,8 @@ from protocol.schema import (
 
 DELIMITER = b"\x00"
 _HEADER = struct.Struct(HEADER_FORMAT)
+_HEADER_UNPACK = _HEADER.unpack_from
+_crc_hqx = binascii.crc_hqx  # CRC-16/IBM-3740 when seeded with 0xFFFF (see protocol.crc)
 _MIN_RAW = HEADER_SIZE + CRC_SIZE
 
 
@@ -83,27 +86,27 @@ class FrameDecoder:
     def feed(self, data: bytes) -> list[Packet]:
         """Consume bytes; return every good packet completed by them, in order."""
         self.bytes_in += len(data)
-        self._buf += data
-        if DELIMITER not in data:
+        if 0 not in data:  # an int search is memchr; a bytes needle costs 5x more here
+            self._buf += data
             self._check_oversize()
             return []
-        *complete, rest = self._buf.split(DELIMITER)
-        self._buf = bytearray(rest)
+        # Split the caller's bytes directly when nothing is pending (every datagram transport).
+        segments = (self._buf + data if self._buf else data).split(DELIMITER)
+        self._buf = bytearray(segments.pop())
         out: list[Packet] = []
-        for enc in complete:
+        limit = self.max_wire_frame - 1
+        for enc in segments:
             if self._discarding:
                 # The tail of an oversize frame: its delimiter ends the discard.
                 self._discarding = False
-                continue
-            if not enc:
-                continue  # back-to-back delimiters are idle fill, not errors
-            if len(enc) > self.max_wire_frame - 1:
+            elif len(enc) > limit:
                 self.drops.oversize += 1
-                continue
-            packet = self._decode(enc)
-            if packet is not None:
-                out.append(packet)
-        self._check_oversize()
+            elif enc:  # back-to-back delimiters are idle fill, not errors
+                packet = self._decode(enc)
+                if packet is not None:
+                    out.append(packet)
+        if len(self._buf) > limit:
+            self._check_oversize()
         return out
 
     def reset(self) -> None:
@@ -129,18 +132,20 @@ class FrameDecoder:
         if len(raw) < _MIN_RAW:
             self.drops.bad_length += 1
             return None
-        if crc16(raw) != 0:
+        # CRC sent big-endian: the CRC over data and its own CRC is zero for a good frame.
+        if _crc_hqx(raw, CRC_INIT):
             self.drops.bad_crc += 1
             return None
-        version, flags, seq, msg_id = _HEADER.unpack_from(raw)
+        version, flags, seq, msg_id = _HEADER_UNPACK(raw)
         if version != PROTOCOL_VERSION:
             self.drops.bad_version += 1
             return None
-        if not known_id(msg_id):
+        decode = RAW_DECODERS.get(msg_id)
+        if decode is None:
             self.drops.unknown_id += 1
             return None
         try:
-            msg = decode_payload(msg_id, raw[: len(raw) - CRC_SIZE], HEADER_SIZE)
+            msg = decode(raw)
         except PayloadError:
             self.drops.bad_payload += 1
             return None

@@ -183,6 +183,7 @@ SCHEMA = Schema()
 MessageT = typing.TypeVar("MessageT")
 
 
+@typing.dataclass_transform()
 def message(
     msg_id: int,
     direction: Direction,
