@@ -1,0 +1,270 @@
+"""Map the controller's 32-bit microsecond clock to host monotonic nanoseconds.
+
+A pure estimator fed numbers, no I/O (the idea follows Klipper's clocksync.py; the code is ours).
+Each CLOCK_SYNC probe gives the host send time t0, the controller time read when the reply was
+queued, and the host receive time t1. The controller read its clock somewhere inside [t0, t1];
+the probes with the shortest round trip pin that instant best, so every probe is weighted by how
+far its RTT lies above the recent minimum. The fit is an exponentially decaying weighted linear
+regression of host time on extended controller time, so a constant drift costs nothing and old
+probes fade out. The fit is recomputed from the kept probes after each one, so a newly found
+lower minimum RTT re-weights the past instead of leaving early, slow probes trusted. Probes
+that disagree with the prediction by far more than their RTT can explain are rejected as
+outliers.
+
+No estimator can see a difference between the two legs' *minimum* delays; it shifts the mapping
+by half that difference. When a link's asymmetry is known, `outbound_fraction` corrects it.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from dataclasses import dataclass
+
+WRAP_US = 1 << 32
+HALF_WRAP_US = 1 << 31
+NS_PER_S = 1_000_000_000
+
+DECAY_TIME_S = 60.0  # time constant of the regression: long enough to average jitter out
+HISTORY_PROBES = 900  # probes kept for the fit (90 s at 10 Hz)
+QUANTILE_WINDOW = 128  # recent probes whose RTT spread sets the cutoff (~13 s at 10 Hz)
+BASE_SIGMA_NS = 20_000  # floor of a probe's timing error even at the minimum RTT
+KEEP_FASTEST_FRACTION = 0.15  # share of probes, by RTT, that enter the fit
+MIN_EXCESS_CUTOFF_NS = 100_000  # never cut tighter than this above the minimum RTT
+MIN_FIT_PROBES = 4  # below this the nominal rate is used for the slope
+PRIOR_SPAN_US = 1_000_000  # the slope leans on the nominal rate as if probes spanned ~1 s
+OUTLIER_SIGMAS = 6.0
+OUTLIER_FLOOR_NS = 200_000
+MAX_CONSECUTIVE_OUTLIERS = 8  # then assume a clock step and start over
+
+
+@dataclass(frozen=True)
+class ClockEstimate:
+    """A snapshot of the fit, for statistics and logs."""
+
+    ns_per_tick: float  # host ns per controller tick (1000 at a perfect 1 MHz clock)
+    drift_ppm: float  # deviation of the controller clock from its nominal rate
+    min_rtt_ns: int | None
+    probes_used: int
+    filtered: int  # probes left out for a slow round trip
+    outliers: int
+    sigma_ns: float  # residual scatter of the weighted fit
+
+
+class ClockSync:
+    """Estimator of host time from controller time, fed by CLOCK_SYNC probes."""
+
+    _fit: _Fit | None
+
+    def __init__(self, mcu_clock_hz: int = 1_000_000, outbound_fraction: float = 0.5) -> None:
+        """`outbound_fraction`: share of the minimum RTT spent on the way to the controller."""
+        if mcu_clock_hz <= 0 or not 0.0 <= outbound_fraction <= 1.0:
+            raise ValueError("mcu_clock_hz must be > 0 and outbound_fraction in [0, 1]")
+        self.nominal_ns_per_tick = NS_PER_S / mcu_clock_hz
+        self.outbound_fraction = outbound_fraction
+        self.probes_used = 0
+        self.outliers = 0
+        self.filtered = 0
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (the controller rebooted: its clock restarted)."""
+        self._last_ext: int | None = None
+        self._restart_fit()
+
+    @property
+    def ready(self) -> bool:
+        """True once at least one probe was accepted."""
+        return self._fit is not None
+
+    def extend(self, mcu_ticks_32: int) -> int:
+        """Extend a 32-bit counter value to 64 bits, nearest to the latest one seen."""
+        value = mcu_ticks_32 & (WRAP_US - 1)
+        if self._last_ext is None:
+            self._last_ext = value
+            return value
+        delta = (value - self._last_ext) & (WRAP_US - 1)
+        if delta >= HALF_WRAP_US:
+            delta -= WRAP_US  # a sample slightly older than the newest: step back
+        ext = self._last_ext + delta
+        self._last_ext = max(self._last_ext, ext)
+        return ext
+
+    def add_probe(self, t0_ns: int, mcu_ticks_32: int, t1_ns: int) -> bool:
+        """Feed one probe; True if it was used, False if rejected (slow round trip or outlier)."""
+        rtt = t1_ns - t0_ns
+        if rtt < 0:
+            return False
+        probe = _Probe(self.extend(mcu_ticks_32), t0_ns, rtt)
+        self._history.append(probe)
+        min_rtt = min(p.rtt for p in self._history)
+        if probe.rtt - min_rtt > self._excess_cutoff(min_rtt):
+            self.filtered += 1
+            return False
+        if self._is_outlier(probe, min_rtt):
+            probe.outlier = True
+            return False
+        self._fit = self._solve(min_rtt)
+        self.probes_used += 1
+        return True
+
+    def mcu_to_host_ns(self, mcu_ticks_32: int) -> int:
+        """Host monotonic ns at which the controller clock read `mcu_ticks_32`."""
+        return self.ext_to_host_ns(self.extend(mcu_ticks_32))
+
+    def ext_to_host_ns(self, mcu_ticks_64: int) -> int:
+        """Host monotonic ns of an already extended controller time."""
+        fit = self._require_fit()
+        return fit.y0 + round(fit.my + fit.slope * (mcu_ticks_64 - fit.x0 - fit.mx))
+
+    def host_to_mcu(self, host_ns: int) -> int:
+        """Extended (64-bit) controller ticks at host time `host_ns`; mask with 2³²-1 for wire."""
+        fit = self._require_fit()
+        return fit.x0 + round(fit.mx + (host_ns - fit.y0 - fit.my) / fit.slope)
+
+    def uncertainty_ns(self, mcu_ticks_32: int | None = None) -> float:
+        """One-sigma error of the mapping at that controller time (default: the latest probe)."""
+        fit = self._require_fit()
+        x = fit.x_last if mcu_ticks_32 is None else self.extend(mcu_ticks_32)
+        dx = x - fit.x0 - fit.mx
+        var_slope = fit.unit_var / fit.sxx if fit.sxx > 0.0 else 0.0
+        return math.sqrt(fit.unit_var / fit.w + var_slope * dx * dx)
+
+    def estimate(self) -> ClockEstimate:
+        """Snapshot of the fit."""
+        fit = self._fit
+        slope = fit.slope if fit is not None else self.nominal_ns_per_tick
+        return ClockEstimate(
+            ns_per_tick=slope,
+            drift_ppm=(self.nominal_ns_per_tick / slope - 1.0) * 1e6,
+            min_rtt_ns=min((p.rtt for p in self._history), default=None),
+            probes_used=self.probes_used,
+            filtered=self.filtered,
+            outliers=self.outliers,
+            sigma_ns=math.sqrt(fit.rss / fit.w) if fit is not None else 0.0,
+        )
+
+    def _restart_fit(self) -> None:
+        """Drop the probes but keep the wrap extension."""
+        self._history: deque[_Probe] = deque(maxlen=HISTORY_PROBES)
+        self._fit = None
+        self._consecutive_outliers = 0
+        self._streak_start_ns = 0
+
+    def _require_fit(self) -> _Fit:
+        """Mapping before the first probe is a caller error, reported clearly."""
+        if self._fit is None:
+            raise RuntimeError("clock sync has no probe yet")
+        return self._fit
+
+    def _excess_cutoff(self, min_rtt: int) -> float:
+        """Keep only the fastest probes: their midpoint error is at most half their excess."""
+        recent = sorted(p.rtt for p in itertools.islice(reversed(self._history), QUANTILE_WINDOW))
+        quantile = recent[int(len(recent) * KEEP_FASTEST_FRACTION)]
+        return max(quantile - min_rtt, MIN_EXCESS_CUTOFF_NS)
+
+    def _is_outlier(self, probe: _Probe, min_rtt: int) -> bool:
+        """A probe far off the prediction, beyond what its own RTT can explain."""
+        fit = self._fit
+        if fit is None or fit.sxx <= 0.0:
+            return False
+        y, sigma2 = self._midpoint(probe, min_rtt)
+        residual = y - self.ext_to_host_ns(probe.x)
+        limit = max(OUTLIER_SIGMAS * math.sqrt(sigma2 * fit.unit_var), OUTLIER_FLOOR_NS)
+        if abs(residual) <= limit:
+            self._consecutive_outliers = 0
+            return False
+        self.outliers += 1
+        self._consecutive_outliers += 1
+        if self._consecutive_outliers == 1:
+            self._streak_start_ns = probe.t0
+        if self._consecutive_outliers >= MAX_CONSECUTIVE_OUTLIERS:
+            # The clock jumped: the old probes are worthless, the outlier streak is the truth.
+            recent = [p for p in self._history if p.t0 >= self._streak_start_ns]
+            self._restart_fit()
+            for p in recent:
+                p.outlier = False
+                self._history.append(p)
+            return False
+        return True
+
+    def _midpoint(self, probe: _Probe, min_rtt: int) -> tuple[float, float]:
+        """Host time of the controller's clock read, and the variance of that guess."""
+        excess = probe.rtt - min_rtt
+        # Beyond the minimum, the extra delay is equally likely on either leg: split it.
+        y = probe.t0 + self.outbound_fraction * min_rtt + excess / 2
+        return y, BASE_SIGMA_NS**2 + (excess / 2) ** 2
+
+    def _solve(self, min_rtt: int) -> _Fit:
+        """Decaying weighted least squares over the kept probes (centred, numerically stable)."""
+        newest = max(p.x for p in self._history)
+        cutoff = self._excess_cutoff(min_rtt)
+        acc = _Accumulator(newest, self._history[-1].t0)
+        for p in self._history:
+            if p.outlier or p.rtt - min_rtt > cutoff:
+                continue
+            y, sigma2 = self._midpoint(p, min_rtt)
+            age_s = (newest - p.x) * self.nominal_ns_per_tick / NS_PER_S
+            acc.add(p.x, y, math.exp(-age_s / DECAY_TIME_S) / sigma2)
+        return acc.result(self.nominal_ns_per_tick)
+
+
+@dataclass
+class _Probe:
+    """One probe as kept for the fit."""
+
+    x: int  # extended controller ticks
+    t0: int  # host send time, ns
+    rtt: int  # ns
+    outlier: bool = False
+
+
+@dataclass(frozen=True)
+class _Fit:
+    """Result of the regression: y = y0 + my + slope·(x − x0 − mx)."""
+
+    x0: int
+    y0: int
+    mx: float
+    my: float
+    slope: float
+    sxx: float
+    w: float
+    rss: float
+    unit_var: float
+    x_last: int
+
+
+class _Accumulator:
+    """West's weighted incremental mean and co-moments, relative to an origin."""
+
+    def __init__(self, x0: int, y0: int) -> None:
+        self.x0, self.y0 = x0, y0
+        self.w = self.w2 = self.mx = self.my = self.sxx = self.sxy = self.syy = 0.0
+        self.n = 0
+
+    def add(self, x: int, y: float, weight: float) -> None:
+        """Add one weighted point."""
+        rx, ry = float(x - self.x0), y - self.y0
+        self.w += weight
+        self.w2 += weight * weight
+        dx, dy = rx - self.mx, ry - self.my
+        self.mx += weight / self.w * dx
+        self.my += weight / self.w * dy
+        self.sxx += weight * dx * (rx - self.mx)
+        self.sxy += weight * dx * (ry - self.my)
+        self.syy += weight * dy * (ry - self.my)
+        self.n += 1
+
+    def result(self, nominal_slope: float) -> _Fit:
+        """The fit; the nominal rate stands in for the slope until the probes span enough time."""
+        fitted = self.n >= MIN_FIT_PROBES
+        # Ridge toward the nominal rate: a short history cannot pull the slope far off it.
+        prior = self.w * PRIOR_SPAN_US**2
+        slope = (self.sxy + prior * nominal_slope) / (self.sxx + prior) if fitted else nominal_slope
+        rss = max(self.syy - 2 * slope * self.sxy + slope * slope * self.sxx, 0.0)
+        n_eff = self.w**2 / self.w2
+        unit_var = max(rss / max(n_eff - 2.0, 1.0), 1.0)
+        sxx = self.sxx if fitted else 0.0
+        return _Fit(self.x0, self.y0, self.mx, self.my, slope, sxx, self.w, rss, unit_var, self.x0)

@@ -1,0 +1,357 @@
+"""The controller API: async commands in mm, mm/s and radians, state snapshots, sample sinks.
+
+Commands return when the controller acknowledged them; a NAK raises ControllerRejected; while
+the link is not up they raise LinkDown at once instead of waiting. Streams and parameters set
+through this API are remembered and re-applied after every reconnect (parameters only after a
+controller reset: otherwise they are still in force). Motions are never re-sent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+from host.link.common import LinkError, LinkEvent, LinkState
+from host.link.reconnect import BackoffConfig, Supervisor
+from host.link.session import SEQ_MOD, Session, SessionConfig
+from host.transport.base import Transport
+from protocol import Packet
+from protocol.enums import Fault, State, Stream
+from protocol.messages import (
+    ClearFault,
+    EncoderSample,
+    Estop,
+    HeadSample,
+    HeadSet,
+    Home,
+    Identify,
+    Jog,
+    MoveTo,
+    ParamGet,
+    ParamPersist,
+    ParamSet,
+    ParamValue,
+    RangeSample,
+    Status,
+    Stop,
+    StreamSet,
+)
+
+UM_PER_MM = 1000.0
+URAD_PER_RAD = 1_000_000.0
+RING_SAMPLES = 4096  # ~4 s of encoder samples at 1 kHz
+STATUS_RATE_HZ = 20  # switched on at connect: motion completion is judged from STATUS
+
+
+class MotionFailed(LinkError):  # noqa: N818
+    """A motion ended in FAULT or ESTOP instead of reaching its target."""
+
+
+class SampleSink(Protocol):
+    """What the pose buffer implements to receive samples in host time."""
+
+    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
+        """Track position sample."""
+
+    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
+        """Head angle sample."""
+
+    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """Rangefinder sample."""
+
+
+@dataclass(frozen=True)
+class Identity:
+    """The controller's IDENTIFY constants, in host units where it helps."""
+
+    fw_version: int
+    boot_id: int
+    encoder_counts_per_rev: int
+    steps_per_rev: int
+    sprocket_teeth: int
+    chain_pitch_mm: float
+    mcu_clock_hz: int
+    rx_window: int
+
+    @property
+    def mm_per_count(self) -> float:
+        """Chain travel per encoder count: teeth × pitch per sprocket turn."""
+        return self.sprocket_teeth * self.chain_pitch_mm / self.encoder_counts_per_rev
+
+    @classmethod
+    def from_message(cls, m: Identify) -> Identity:
+        """Build from the wire message."""
+        return cls(
+            m.fw_version,
+            m.boot_id,
+            m.encoder_counts_per_rev,
+            m.steps_per_rev,
+            m.sprocket_teeth,
+            m.chain_pitch_um / UM_PER_MM,
+            m.mcu_clock_hz,
+            m.rx_window,
+        )
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """What the host knows of the controller right now."""
+
+    link: LinkState
+    state: State | None
+    faults: Fault
+    inputs: int
+    position_mm: float | None
+    updated_ns: int | None  # host monotonic time of the last STATUS or encoder sample
+
+
+@dataclass
+class Motion:
+    """Handle of an acknowledged motion; `await motion.done(timeout)` waits for its end."""
+
+    controller: Controller
+    ack_seq: int
+    target_mm: float | None
+
+    async def done(self, timeout_s: float = 60.0) -> None:
+        """Return once STATUS shows rest (at this target, for MOVE_TO); MotionFailed on a fault."""
+        await self.controller._wait_for_rest(self.ack_seq, self.target_mm, timeout_s)
+
+
+@dataclass
+class _Status:
+    """Latest STATUS, with the controller seq it arrived in."""
+
+    seq: int
+    msg: Status
+    t_ns: int
+
+
+@dataclass
+class Controller:
+    """Async API over one transport, with automatic reconnection."""
+
+    transport: Transport
+    session_config: SessionConfig = field(default_factory=SessionConfig)
+    backoff: BackoffConfig = field(default_factory=BackoffConfig)
+    on_event: Callable[[LinkEvent, str], None] | None = None
+    seed: int | None = None
+
+    def __post_init__(self) -> None:
+        self.session = Session(self.transport, self.session_config, on_packet=self._on_packet)
+        self.supervisor = Supervisor(
+            self.session, self._restore, backoff=self.backoff, seed=self.seed
+        )
+        self.supervisor.on_event = self._forward_event
+        self.identity: Identity | None = None
+        self.encoder_ring: deque[tuple[int, float, float, int]] = deque(maxlen=RING_SAMPLES)
+        self.unsynced_samples = 0  # samples dropped before the clock sync had a probe
+        self._sinks: list[SampleSink] = []
+        self._streams: dict[Stream, int] = {Stream.STATUS: STATUS_RATE_HZ}
+        self._params: dict[int, int] = {}
+        self._status: _Status | None = None
+        self._status_changed = asyncio.Event()
+        self._last_position_mm: float | None = None
+        self._updated_ns: int | None = None
+
+    # ---- connection ----------------------------------------------------------------------
+
+    async def connect(self) -> Identity:
+        """Open the transport, handshake, switch on the streams; reconnects automatically after."""
+        await self.supervisor.connect()
+        assert self.identity is not None
+        return self.identity
+
+    async def close(self) -> None:
+        """Stop everything; commands raise LinkDown afterwards."""
+        await self.supervisor.close()
+
+    @property
+    def link_state(self) -> LinkState:
+        """Where the link is."""
+        return self.supervisor.state
+
+    async def identify(self) -> Identity:
+        """The constants from the last IDENTIFY."""
+        self.supervisor.require_up()
+        assert self.identity is not None
+        return self.identity
+
+    def add_sink(self, sink: SampleSink) -> None:
+        """Receive every converted sample from now on."""
+        self._sinks.append(sink)
+
+    def snapshot(self) -> Snapshot:
+        """Current knowledge, without waiting."""
+        st = self._status.msg if self._status is not None else None
+        return Snapshot(
+            self.link_state,
+            State(st.state) if st is not None else None,
+            Fault(st.faults) if st is not None else Fault.NONE,
+            st.inputs if st is not None else 0,
+            self._last_position_mm,
+            self._updated_ns,
+        )
+
+    # ---- commands ------------------------------------------------------------------------
+
+    async def home(self, speed_mm_s: float = 0.0) -> Motion:
+        """Seek home (0 = the controller's HOME_SPEED)."""
+        return await self._motion(Home(speed_um_s=_um(speed_mm_s)), None)
+
+    async def move_to(self, mm: float, speed_mm_s: float, accel_mm_s2: float) -> Motion:
+        """Move to an absolute arc length along a trapezoidal profile."""
+        msg = MoveTo(_um(mm), _um(speed_mm_s), _um(accel_mm_s2))
+        return await self._motion(msg, mm)
+
+    async def jog(self, mm_s: float, accel_mm_s2: float) -> Motion:
+        """Run at a signed velocity until stop."""
+        return await self._motion(Jog(_um(mm_s), _um(accel_mm_s2)), None)
+
+    async def stop(self) -> None:
+        """Controlled stop."""
+        await self._command(Stop())
+
+    async def estop(self) -> None:
+        """Emergency stop, latched until clear_fault."""
+        await self._command(Estop())
+
+    async def clear_fault(self) -> None:
+        """Release latched faults and the e-stop."""
+        await self._command(ClearFault())
+
+    async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
+        """Point the head."""
+        await self._command(HeadSet(round(pan_rad * URAD_PER_RAD), round(tilt_rad * URAD_PER_RAD)))
+
+    async def set_streams(self, rates_hz: dict[Stream, int]) -> None:
+        """Switch streams on (rate) or off (0); remembered across reconnects."""
+        for stream, rate in rates_hz.items():
+            await self._command(StreamSet(int(stream), int(rate)))
+            self._streams[stream] = int(rate)
+
+    async def get_param(self, param_id: int) -> int:
+        """Read a parameter."""
+        return await self._param(ParamGet(int(param_id)))
+
+    async def set_param(self, param_id: int, value: int) -> int:
+        """Write a parameter; returns the value in force; re-applied after a controller reset."""
+        in_force = await self._param(ParamSet(int(param_id), int(value)))
+        self._params[int(param_id)] = int(value)
+        return in_force
+
+    async def persist_params(self) -> None:
+        """Write the parameters to flash."""
+        await self._command(ParamPersist())
+
+    async def wait_idle(self, timeout_s: float = 60.0) -> None:
+        """Wait until the controller rests after everything sent so far."""
+        await self._wait_for_rest(None, None, timeout_s)
+
+    # ---- internals -----------------------------------------------------------------------
+
+    async def _command(self, msg: object) -> Packet:
+        """Refuse while down; otherwise send reliably and return the reply."""
+        self.supervisor.require_up()
+        return await self.session.request(msg)
+
+    async def _motion(self, msg: object, target_mm: float | None) -> Motion:
+        """A command whose completion can be awaited."""
+        reply = await self._command(msg)
+        return Motion(self, reply.seq, target_mm)
+
+    async def _param(self, msg: object) -> int:
+        """A parameter request; the reply carries the value in force."""
+        reply = (await self._command(msg)).message
+        assert isinstance(reply, ParamValue)
+        return reply.value
+
+    async def _restore(self, ident: Identify, rebooted: bool) -> None:
+        """After each handshake: streams always, parameters after a controller reset."""
+        self.identity = Identity.from_message(ident)
+        self._status = None
+        for stream, rate in self._streams.items():
+            await self.session.request(StreamSet(int(stream), rate))
+        if rebooted:
+            for pid, value in self._params.items():
+                await self.session.request(ParamSet(pid, value))
+
+    def _forward_event(self, event: LinkEvent, detail: str) -> None:
+        """Pass link events to the user."""
+        if self.on_event is not None:
+            self.on_event(event, detail)
+
+    async def _wait_for_rest(
+        self, after_seq: int | None, target_mm: float | None, t: float
+    ) -> None:
+        """Wait for a STATUS newer than `after_seq` showing rest (at target) or a fault."""
+        async with asyncio.timeout(t):
+            while True:
+                self.supervisor.require_up()
+                if self._at_rest(after_seq, target_mm):
+                    return
+                self._status_changed.clear()
+                await self._status_changed.wait()
+
+    def _at_rest(self, after_seq: int | None, target_mm: float | None) -> bool:
+        """True at rest; MotionFailed if the controller faulted."""
+        st = self._status
+        if st is None or (after_seq is not None and (st.seq - after_seq) % SEQ_MOD >= SEQ_MOD // 2):
+            return False
+        state = State(st.msg.state)
+        if state in (State.FAULT, State.ESTOP):
+            raise MotionFailed(f"controller in {state.name}, faults {Fault(st.msg.faults)!r}")
+        if state not in (State.READY, State.IDLE):
+            return False
+        # The controller's own profile end, not the encoder (whether the trolley followed is the
+        # firmware's following-error check); the firmware rounds the target to whole steps.
+        return target_mm is None or abs(st.msg.target_um - _um(target_mm)) <= self._quantum_um()
+
+    def _quantum_um(self) -> float:
+        """Resolution of a target on the wire: the larger of one step and one encoder count."""
+        ident = self.identity
+        if ident is None:
+            return 1.0
+        per_rev_um = ident.sprocket_teeth * ident.chain_pitch_mm * UM_PER_MM
+        return per_rev_um / min(ident.steps_per_rev, ident.encoder_counts_per_rev) + 1.0
+
+    def _on_packet(self, packet: Packet) -> None:
+        """Telemetry from the session."""
+        msg = packet.message
+        if isinstance(msg, Status):
+            self._status = _Status(packet.seq, msg, time.monotonic_ns())
+            self._last_position_mm = msg.position_um / UM_PER_MM
+            self._updated_ns = self._status.t_ns
+            self._status_changed.set()
+        elif isinstance(msg, EncoderSample | HeadSample | RangeSample):
+            self._on_sample(msg)
+
+    def _on_sample(self, msg: EncoderSample | HeadSample | RangeSample) -> None:
+        """Convert to host time and units; feed the ring and the sinks."""
+        clock = self.session.clock
+        if not clock.ready or self.identity is None:
+            self.unsynced_samples += 1
+            return
+        t_ns = clock.mcu_to_host_ns(msg.mcu_time_us)
+        if isinstance(msg, EncoderSample):
+            k = self.identity.mm_per_count
+            s_mm, v_mm_s = msg.encoder_count * k, msg.velocity_counts_s * k
+            self.encoder_ring.append((t_ns, s_mm, v_mm_s, msg.inputs))
+            self._last_position_mm, self._updated_ns = s_mm, t_ns
+            for sink in self._sinks:
+                sink.on_encoder(t_ns, s_mm, v_mm_s, msg.inputs)
+        elif isinstance(msg, HeadSample):
+            for sink in self._sinks:
+                sink.on_head(t_ns, msg.pan_urad / URAD_PER_RAD, msg.tilt_urad / URAD_PER_RAD)
+        else:
+            for sink in self._sinks:
+                sink.on_range(t_ns, msg.distance_um / UM_PER_MM, msg.quality)
+
+
+def _um(mm: float) -> int:
+    """mm (or mm/s, mm/s²) → integer µm for the wire."""
+    return round(mm * UM_PER_MM)

@@ -1,0 +1,508 @@
+"""The host end of a link session: handshake, seq, ack/nak, retransmission, heartbeat, clock probes.
+
+One `Session` sits on one transport. Reliable commands (`acked` in the message table) go out
+with ACK_REQUESTED and are retransmitted with the same seq (and RETRANSMIT) until their reply
+arrives, at most `rx_window` at a time; the RTO follows RFC 6298 with Karn's rule. Replies name
+the command by `req_seq`; a reply for a seq no longer pending is a late duplicate, counted and
+ignored. Requests are cancel-safe: the future is registered before the frame is sent and removed
+in `finally`, whatever ends the wait. The session never reconnects by itself: it reports what it
+sees (heartbeat silence, a controller reboot) through `on_event` and its owner decides.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+from host.link.clocksync import ClockSync
+from host.link.common import (
+    CommandTimeout,
+    ControllerRejected,
+    LinkDown,
+    LinkEvent,
+    LinkStats,
+    ProtocolMismatch,
+)
+from host.transport.base import Transport, TransportError
+from protocol import (
+    PROTOCOL_VERSION,
+    SCHEMA_HASH,
+    Flag,
+    FrameDecoder,
+    Packet,
+    encode_frame,
+    spec_of,
+)
+from protocol.enums import NakCode, State
+from protocol.messages import ClockSync as ClockSyncMsg
+from protocol.messages import ClockSyncReply, Heartbeat, Hello, Identify, Nak
+
+log = logging.getLogger(__name__)
+
+SEQ_MOD = 1 << 16
+U32_MOD = 1 << 32
+# A frame with a tiny seq far from the expected one: the controller's counter restarted.
+SEQ_RESTART_BELOW = 16
+SEQ_RESTART_MIN_JUMP = 256
+MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
+RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
+RTO_ALPHA = 1 / 8
+RTO_BETA = 1 / 4
+RTO_K = 4
+
+EventHandler = Callable[[LinkEvent, str], None]
+PacketHandler = Callable[[Packet], None]
+
+
+@dataclass
+class SessionConfig:
+    """Timing of one session; the defaults suit a 115200 Bd serial link or an XBee radio."""
+
+    heartbeat_interval_s: float = 0.1
+    dead_after_heartbeats: int = 10  # silence of this many intervals declares the link dead
+    clock_sync_interval_s: float = 0.1  # 10 Hz probes; 0 disables clock sync
+    rto_initial_s: float = 0.25
+    rto_min_s: float = 0.02
+    rto_max_s: float = 2.0
+    max_tries: int = 8  # transmissions of one command before CommandTimeout
+    handshake_tries: int = 4
+    # The controller keeps the replies of at least this many × rx_window commands (PROTOCOL.md,
+    # "Duplicate suppression"). See Session._window_open for why the factor matters.
+    reply_cache_factor: int = 2
+
+
+class RtoEstimator:
+    """Retransmission timeout from RTT samples, per RFC 6298 (SRTT, RTTVAR, bounded backoff)."""
+
+    def __init__(self, config: SessionConfig) -> None:
+        self._cfg = config
+        self.srtt_s: float | None = None
+        self.rttvar_s: float | None = None
+        self.rto_s = config.rto_initial_s
+
+    def sample(self, rtt_s: float) -> None:
+        """Fold in an RTT measured on a command sent once (Karn's rule is the caller's)."""
+        if self.srtt_s is None or self.rttvar_s is None:
+            self.srtt_s, self.rttvar_s = rtt_s, rtt_s / 2
+        else:
+            self.rttvar_s = (1 - RTO_BETA) * self.rttvar_s + RTO_BETA * abs(self.srtt_s - rtt_s)
+            self.srtt_s = (1 - RTO_ALPHA) * self.srtt_s + RTO_ALPHA * rtt_s
+        raw = self.srtt_s + max(RTO_CLOCK_GRANULARITY_S, RTO_K * self.rttvar_s)
+        self.rto_s = self._clamp(raw)
+
+    def backoff(self) -> float:
+        """Double the RTO after a timeout (bounded); returns the new value."""
+        self.rto_s = self._clamp(self.rto_s * 2)
+        return self.rto_s
+
+    def _clamp(self, rto_s: float) -> float:
+        """Keep the RTO inside the configured bounds."""
+        return min(max(rto_s, self._cfg.rto_min_s), self._cfg.rto_max_s)
+
+
+@dataclass
+class _Pending:
+    """A reliable command waiting for its reply."""
+
+    seq: int
+    message: object
+    name: str
+    reply_name: str
+    future: asyncio.Future[Packet]
+    index: int = 0  # position among all commands, for the sliding window
+    tries: int = 0
+    first_sent_s: float = 0.0
+    rto_s: float = 0.0
+    timer: asyncio.TimerHandle | None = None
+
+
+@dataclass
+class _RxSeq:
+    """Tracks the controller's seq to count frames lost on the way."""
+
+    expected: int | None = None
+
+    def see(self, seq: int, stats: LinkStats) -> bool:
+        """Account for one received frame's seq; True if the seq restarted (a reboot?)."""
+        if self.expected is None:
+            self.expected = (seq + 1) % SEQ_MOD
+            return False
+        gap = (seq - self.expected) % SEQ_MOD
+        if seq < SEQ_RESTART_BELOW and SEQ_RESTART_MIN_JUMP < gap < SEQ_MOD - SEQ_RESTART_MIN_JUMP:
+            self.expected = (seq + 1) % SEQ_MOD  # a counter starting afresh, not a loss
+            return True
+        if gap < SEQ_MOD // 2:
+            stats.rx_lost += gap
+            self.expected = (seq + 1) % SEQ_MOD
+        else:
+            stats.rx_out_of_order += 1  # older than the newest: a repeat or a late frame
+        return False
+
+
+@dataclass
+class Session:
+    """Reliable commands, heartbeat and clock sync over one transport."""
+
+    transport: Transport
+    config: SessionConfig = field(default_factory=SessionConfig)
+    on_packet: PacketHandler | None = None  # telemetry, STATUS, LOG: everything not a reply
+    on_event: EventHandler | None = None
+    on_lost: Callable[[Exception | None], None] | None = None  # the transport went away
+
+    def __post_init__(self) -> None:
+        self.stats = LinkStats()
+        self.clock = ClockSync()
+        self.rto = RtoEstimator(self.config)
+        self.identity: Identify | None = None
+        self._decoder = FrameDecoder()
+        self.stats.drops = self._decoder.drops
+        self._tx_seq = 0
+        self._rx_seq = _RxSeq()
+        self._inflight: dict[int, _Pending] = {}
+        self._window = 1  # until IDENTIFY tells us rx_window
+        self._cmd_index = 0
+        self._slot_waiters: list[asyncio.Future[None]] = []
+        self._probes: dict[int, tuple[int, int]] = {}
+        self._tokens = itertools.count(1)
+        self._tasks: list[asyncio.Task[None]] = []
+        self._running = False
+        self._last_rx_s = 0.0
+        self._last_tx_s = 0.0
+        self._peer_uptime_ms: int | None = None
+        self._started_ns = time.monotonic_ns()
+
+    # ---- life cycle ----------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Begin on an open transport: route its bytes here, start heartbeat and probes."""
+        self.transport.set_receiver(self._on_bytes, self.on_lost)
+        self._decoder.reset()
+        self._rx_seq = _RxSeq()
+        self._running = True
+        self._last_rx_s = asyncio.get_running_loop().time()
+        self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="link-heartbeat")]
+        if self.config.clock_sync_interval_s > 0:
+            self._tasks.append(asyncio.create_task(self._clock_loop(), name="link-clocksync"))
+
+    def halt(self, reason: str) -> None:
+        """Stop at once (callable from callbacks): pending commands fail with LinkDown."""
+        self._running = False
+        for task in self._tasks:
+            task.cancel()
+        self._fail_pending(LinkDown(reason))
+        self._probes.clear()
+
+    async def stop(self, reason: str = "session closed") -> None:
+        """Halt and wait for the background tasks to finish."""
+        self.halt(reason)
+        tasks, self._tasks = self._tasks, []
+        for task in tasks:
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    @property
+    def running(self) -> bool:
+        """True between start and halt."""
+        return self._running
+
+    # ---- requests ------------------------------------------------------------------------
+
+    async def handshake(self) -> tuple[Identify, bool]:
+        """HELLO → IDENTIFY; returns it and whether the boot id changed (controller reset)."""
+        self._window = 1
+        hello = Hello(protocol_version=PROTOCOL_VERSION, schema_hash=SCHEMA_HASH)
+        packet = await self.request(hello, max_tries=self.config.handshake_tries)
+        ident = packet.message
+        assert isinstance(ident, Identify)
+        if ident.protocol_version != PROTOCOL_VERSION or ident.schema_hash != SCHEMA_HASH:
+            raise ProtocolMismatch(
+                PROTOCOL_VERSION, SCHEMA_HASH, ident.protocol_version, ident.schema_hash
+            )
+        rebooted = self.identity is not None and self.identity.boot_id != ident.boot_id
+        if rebooted or self.identity is None:
+            self.clock = ClockSync(ident.mcu_clock_hz or 1_000_000)
+        if rebooted:
+            self.stats.controller_resets += 1
+        self.identity = ident
+        cache = self.config.reply_cache_factor * ident.rx_window
+        self._window = max(1, min(ident.rx_window, (cache + 1) // 2))
+        self._peer_uptime_ms = None
+        self.stats.handshakes += 1
+        self._wake_next_waiter()
+        return ident, rebooted
+
+    async def request(self, message: object, *, max_tries: int | None = None) -> Packet:
+        """Send a reliable command and return the reply packet; NAK raises ControllerRejected."""
+        spec = spec_of(message)
+        if not spec.acked or spec.reply is None:
+            raise ValueError(f"{spec.name} is not an acknowledged command")
+        await self._acquire_slot()
+        loop = asyncio.get_running_loop()
+        entry = _Pending(self._next_seq(), message, spec.name, spec.reply, loop.create_future())
+        entry.index = self._cmd_index
+        self._cmd_index += 1
+        self._inflight[entry.seq] = entry
+        self._wake_next_waiter()  # the window may have room for more than this one
+        try:
+            self.stats.commands += 1
+            entry.first_sent_s = loop.time()
+            entry.rto_s = self.rto.rto_s
+            self._transmit(entry, max_tries or self.config.max_tries)
+            return await entry.future
+        finally:
+            self._forget(entry)
+
+    def send(self, message: object) -> int:
+        """Send an unacknowledged frame (HEARTBEAT, CLOCK_SYNC); returns its seq."""
+        if not self._running:
+            raise LinkDown("session is not running")
+        seq = self._next_seq()
+        self._write(message, seq, Flag.NONE)
+        return seq
+
+    # ---- sending -------------------------------------------------------------------------
+
+    def _next_seq(self) -> int:
+        """The next u16 seq of the host direction."""
+        seq = self._tx_seq
+        self._tx_seq = (seq + 1) % SEQ_MOD
+        return seq
+
+    def _write(self, message: object, seq: int, flags: int) -> None:
+        """Encode and hand one frame to the transport; a dead transport is LinkDown."""
+        frame = encode_frame(message, seq, flags)
+        try:
+            self.transport.send(frame)
+        except TransportError as exc:
+            raise LinkDown(str(exc)) from exc
+        self.stats.frames_out += 1
+        self.stats.bytes_out += len(frame)
+        self._last_tx_s = asyncio.get_running_loop().time()
+
+    def _transmit(self, entry: _Pending, max_tries: int) -> None:
+        """(Re)send a pending command and arm its retransmission timer."""
+        if not self._running:
+            raise LinkDown("session is not running")
+        flags = Flag.ACK_REQUESTED | (Flag.RETRANSMIT if entry.tries else Flag.NONE)
+        self._write(entry.message, entry.seq, flags)
+        entry.tries += 1
+        loop = asyncio.get_running_loop()
+        entry.timer = loop.call_later(entry.rto_s, self._on_rto, entry, max_tries)
+
+    def _on_rto(self, entry: _Pending, max_tries: int) -> None:
+        """Timer: retransmit with a doubled timeout, or give up."""
+        entry.timer = None
+        if entry.future.done():
+            return
+        if entry.tries >= max_tries:
+            self.stats.timeouts += 1
+            msg = f"{entry.name} seq {entry.seq}: no reply after {entry.tries} tries"
+            entry.future.set_exception(CommandTimeout(msg))
+            return
+        self.rto.backoff()
+        entry.rto_s = min(entry.rto_s * 2, self.config.rto_max_s)
+        self.stats.retransmits += 1
+        try:
+            self._transmit(entry, max_tries)
+        except LinkDown as exc:
+            entry.future.set_exception(exc)
+
+    async def _acquire_slot(self) -> None:
+        """Wait, first come first served, until the window lets one more command out."""
+        loop = asyncio.get_running_loop()
+        while True:
+            if not self._running:
+                raise LinkDown("session is not running")
+            if self._window_open() and not self._slot_waiters:
+                return
+            waiter: asyncio.Future[None] = loop.create_future()
+            self._slot_waiters.append(waiter)
+            try:
+                await waiter
+            except asyncio.CancelledError:
+                if waiter.done() and not waiter.cancelled():
+                    self._wake_next_waiter()  # woken, then cancelled: pass the turn on
+                raise
+            finally:
+                if waiter in self._slot_waiters:
+                    self._slot_waiters.remove(waiter)
+            if self._running and self._window_open():
+                return
+
+    def _window_open(self) -> bool:
+        """A sliding window over commands, not a count.
+
+        The controller remembers the replies of its last rx_window executed commands. A pending
+        command X must still be in that cache when its retransmission arrives, or it runs twice.
+        After X executes, the controller may execute the older commands still pending when X
+        was sent and every newer one: at most 2·(span − 1) of them, so with a cache of
+        factor × rx_window the span of first sends is held to (factor·rx_window + 1) // 2,
+        never above rx_window.
+        """
+        if not self._inflight:
+            return True
+        oldest = min(e.index for e in self._inflight.values())
+        return self._cmd_index - oldest < self._window
+
+    def _wake_next_waiter(self) -> None:
+        """Give the turn to the oldest waiter if the window has room (one at a time: no herd)."""
+        if not self._window_open():
+            return
+        while self._slot_waiters:
+            waiter = self._slot_waiters.pop(0)
+            if not waiter.done():
+                waiter.set_result(None)
+                return
+
+    def _wake_slot_waiters(self) -> None:
+        """Wake every waiter: the session stopped, they will all raise LinkDown."""
+        waiters, self._slot_waiters = self._slot_waiters, []
+        for waiter in waiters:
+            if not waiter.done():
+                waiter.set_result(None)
+
+    def _forget(self, entry: _Pending) -> None:
+        """A request ended (reply, error or cancellation): free its timer and window slot."""
+        if entry.timer is not None:
+            entry.timer.cancel()
+            entry.timer = None
+        if self._inflight.get(entry.seq) is entry:
+            del self._inflight[entry.seq]
+        self._wake_next_waiter()
+
+    def _fail_pending(self, exc: Exception) -> None:
+        """Fail every pending command and window waiter."""
+        for entry in list(self._inflight.values()):
+            if entry.timer is not None:
+                entry.timer.cancel()
+                entry.timer = None
+            if not entry.future.done():
+                entry.future.set_exception(exc)
+        self._wake_slot_waiters()
+
+    # ---- receiving -----------------------------------------------------------------------
+
+    def _on_bytes(self, data: bytes) -> None:
+        """Transport receiver: decode and dispatch every complete frame."""
+        self.stats.bytes_in += len(data)
+        for packet in self._decoder.feed(data):
+            self.stats.frames_in += 1
+            if self._rx_seq.see(packet.seq, self.stats):
+                self._emit(LinkEvent.RESET_SUSPECTED, f"controller seq restarted at {packet.seq}")
+            self._last_rx_s = asyncio.get_running_loop().time()
+            self._dispatch(packet)
+
+    def _dispatch(self, packet: Packet) -> None:
+        """Route one packet: replies to their requests, the rest to the owner."""
+        msg = packet.message
+        if isinstance(msg, ClockSyncReply):
+            self._on_clock_reply(msg)
+        elif hasattr(msg, "req_seq"):
+            self._on_reply(packet)
+        elif isinstance(msg, Heartbeat):
+            self._on_heartbeat(msg)
+        elif self.on_packet is not None:
+            self.on_packet(packet)
+
+    def _on_reply(self, packet: Packet) -> None:
+        """Complete the command the reply names, or count it as a late duplicate."""
+        msg: Any = packet.message
+        entry = self._inflight.get(msg.req_seq)
+        if entry is None or entry.future.done():
+            self.stats.duplicate_replies += 1
+            return
+        if isinstance(msg, Nak):
+            self.stats.naks += 1
+            exc = ControllerRejected(entry.name, _enum(NakCode, msg.code), _enum(State, msg.state))
+            entry.future.set_exception(exc)
+            return
+        if spec_of(msg).name != entry.reply_name:
+            self.stats.unexpected_replies += 1
+            return
+        if entry.tries == 1:  # Karn: a retransmitted command's RTT is ambiguous
+            self._rtt_sample(asyncio.get_running_loop().time() - entry.first_sent_s)
+        entry.future.set_result(packet)
+
+    def _rtt_sample(self, rtt_s: float) -> None:
+        """Feed the RTO estimator and the statistics."""
+        self.rto.sample(rtt_s)
+        rtt = self.stats.rtt
+        rtt.samples += 1
+        rtt.last_s = rtt_s
+        rtt.min_s = rtt_s if rtt.min_s is None else min(rtt.min_s, rtt_s)
+        rtt.srtt_s, rtt.rttvar_s, rtt.rto_s = self.rto.srtt_s, self.rto.rttvar_s, self.rto.rto_s
+
+    def _on_heartbeat(self, msg: Heartbeat) -> None:
+        """Count it; uptime running backwards means the controller rebooted."""
+        self.stats.heartbeats_in += 1
+        previous, self._peer_uptime_ms = self._peer_uptime_ms, msg.uptime_ms
+        if previous is not None and (msg.uptime_ms - previous) % U32_MOD >= U32_MOD // 2:
+            self._emit(LinkEvent.RESET_SUSPECTED, f"uptime fell from {previous} ms")
+
+    def _on_clock_reply(self, msg: ClockSyncReply) -> None:
+        """Pair the reply with its probe and feed the estimator."""
+        probe = self._probes.pop(msg.req_seq, None)
+        if probe is None or probe[1] != msg.token:
+            self.stats.duplicate_replies += 1
+            return
+        self.stats.clock_replies += 1
+        self.clock.add_probe(probe[0], msg.mcu_time_us, time.monotonic_ns())
+
+    def _emit(self, event: LinkEvent, detail: str) -> None:
+        """Tell the owner; logging here so nothing goes unseen."""
+        log.info("link event %s: %s", event.value, detail)
+        if self.on_event is not None:
+            self.on_event(event, detail)
+
+    # ---- background ----------------------------------------------------------------------
+
+    async def _heartbeat_loop(self) -> None:
+        """Send HEARTBEAT when idle; declare the link dead after a long silence."""
+        cfg = self.config
+        loop = asyncio.get_running_loop()
+        while self._running:
+            await asyncio.sleep(cfg.heartbeat_interval_s)
+            now = loop.time()
+            if now - self._last_rx_s > cfg.heartbeat_interval_s * cfg.dead_after_heartbeats:
+                self._emit(LinkEvent.HEARTBEAT_TIMEOUT, f"silent for {now - self._last_rx_s:.2f} s")
+                return
+            if now - self._last_tx_s >= cfg.heartbeat_interval_s * 0.9:
+                uptime_ms = (time.monotonic_ns() - self._started_ns) // 1_000_000 % U32_MOD
+                self._send_quietly(Heartbeat(uptime_ms=uptime_ms))
+                self.stats.heartbeats_out += 1
+
+    async def _clock_loop(self) -> None:
+        """Probe the controller clock at a steady rate once the handshake is done."""
+        while self._running:
+            await asyncio.sleep(self.config.clock_sync_interval_s)
+            if self.identity is None:
+                continue
+            token = next(self._tokens) % U32_MOD
+            t0 = time.monotonic_ns()
+            seq = self._send_quietly(ClockSyncMsg(token=token))
+            if seq is not None:
+                self.stats.clock_probes += 1
+                self._probes[seq] = (t0, token)
+                while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
+                    del self._probes[next(iter(self._probes))]
+
+    def _send_quietly(self, message: object) -> int | None:
+        """Background send: a dead link is reported by the transport, not raised here."""
+        try:
+            return self.send(message)
+        except LinkDown:
+            return None
+
+
+def _enum(kind: Any, value: int) -> Any:
+    """Wire integer → enum member; an unknown value stays an int rather than crashing."""
+    try:
+        return kind(value)
+    except ValueError:
+        return value

@@ -1,0 +1,153 @@
+"""Controller API over the fake: units, NAK, motion completion, samples, reconnect and reset."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+import pytest
+
+from host.link.common import ControllerRejected, LinkDown, LinkEvent, LinkState
+from host.link.controller import Controller, MotionFailed
+from host.link.reconnect import BackoffConfig
+from host.link.session import SessionConfig
+from protocol.enums import NakCode, State, Stream
+from protocol.messages import MoveTo, StreamSet
+from tests.link.fake_controller import FakeController
+
+CFG = SessionConfig(rto_initial_s=0.02, heartbeat_interval_s=0.02, dead_after_heartbeats=10)
+BACKOFF = BackoffConfig(initial_s=0.02, max_s=0.1)
+
+
+class Sink:
+    """Records encoder samples."""
+
+    def __init__(self) -> None:
+        self.encoder: list[tuple[int, float, float, int]] = []
+
+    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
+        self.encoder.append((t_host_ns, s_mm, velocity_mm_s, inputs))
+
+    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
+        """Unused here."""
+
+    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """Unused here."""
+
+
+@pytest.fixture
+async def rig() -> AsyncIterator[tuple[FakeController, Controller, list[LinkEvent]]]:
+    fake = FakeController()
+    events: list[LinkEvent] = []
+    ctrl = Controller(fake.wire(), CFG, BACKOFF, on_event=lambda e, _d: events.append(e), seed=1)
+    await ctrl.connect()
+    yield fake, ctrl, events
+    await ctrl.close()
+    await fake.close()
+
+
+async def test_move_converts_units_and_completes_on_status(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    motion = await ctrl.move_to(1500.0, 100.0, 250.5)
+    assert fake.executed[-1] == MoveTo(1_500_000, 100_000, 250_500)
+    waiter = asyncio.create_task(motion.done(2.0))
+    fake.send_status(State.MOVING, 700_000, 1_500_000)
+    fake.send_status(State.READY, 700_000, 700_000)  # at rest, but not this motion's target
+    await asyncio.sleep(0.01)
+    assert not waiter.done()
+    fake.send_status(State.READY, 1_500_010, 1_500_000)
+    await waiter
+    snap = ctrl.snapshot()
+    assert snap.state is State.READY
+    assert snap.position_mm == pytest.approx(1500.01)
+    assert snap.link is LinkState.UP
+
+
+async def test_motion_fault_raises(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    motion = await ctrl.jog(50.0, 100.0)
+    fake.send_status(State.FAULT, 0, 0)
+    with pytest.raises(MotionFailed, match="FAULT"):
+        await motion.done(1.0)
+
+
+async def test_nak_raises_controller_rejected(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    fake.nak_next = (NakCode.NOT_HOMED, State.IDLE)
+    with pytest.raises(ControllerRejected) as info:
+        await ctrl.move_to(10.0, 10.0, 10.0)
+    assert (info.value.code, info.value.state) == (NakCode.NOT_HOMED, State.IDLE)
+
+
+async def test_encoder_samples_reach_sinks_in_mm_and_host_time(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    sink = Sink()
+    ctrl.add_sink(sink)
+    await asyncio.sleep(0.35)  # a few clock-sync probes
+    assert ctrl.session.clock.ready
+    now_us = int(asyncio.get_running_loop().time() * 1e6) + fake.mcu_offset_us
+    fake.send_encoder(now_us, 4000, 400)  # one sprocket turn: 20 teeth × 12.7 mm
+    await asyncio.sleep(0.01)
+    _t_ns, s_mm, v_mm_s, _ = sink.encoder[-1]
+    assert s_mm == pytest.approx(254.0)
+    assert v_mm_s == pytest.approx(25.4)
+    assert ctrl.encoder_ring[-1][1] == pytest.approx(254.0)
+
+
+async def test_reconnect_with_backoff_refuses_commands_meanwhile(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    await ctrl.set_streams({Stream.ENCODER: 100})
+    stream_sets = sum(isinstance(m, StreamSet) for m in fake.executed)
+    fake.silent = True
+    pending = asyncio.create_task(ctrl.stop())
+    await asyncio.sleep(0.005)
+    fake.transport.available = False
+    fake.transport.disconnect()
+    with pytest.raises(LinkDown):
+        await pending  # failed, never re-sent after the reconnect
+    assert ctrl.link_state in (LinkState.DOWN, LinkState.BACKOFF)
+    with pytest.raises(LinkDown):
+        await ctrl.move_to(1.0, 1.0, 1.0)
+    await asyncio.sleep(0.3)
+    attempts = ctrl.supervisor.attempts
+    assert attempts >= 3  # retried with backoff while the device was missing
+    fake.silent = False
+    fake.transport.available = True
+    for _ in range(100):
+        await asyncio.sleep(0.02)
+        if ctrl.link_state is LinkState.UP:
+            break
+    assert ctrl.link_state is LinkState.UP
+    assert sum(isinstance(m, StreamSet) for m in fake.executed) == stream_sets + 2  # both restored
+    assert not any(type(m).__name__ == "Stop" for m in fake.executed)
+
+
+async def test_controller_reset_is_detected_and_state_restored(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, events = rig
+    await ctrl.set_streams({Stream.ENCODER: 200})
+    await ctrl.set_param(2, 123_000)
+    fake.send_heartbeat(5000)
+    fake.reboot(0xBEEF)
+    fake.send_heartbeat(10)
+    for _ in range(100):
+        await asyncio.sleep(0.02)
+        if ctrl.link_state is LinkState.UP and ctrl.identity and ctrl.identity.boot_id == 0xBEEF:
+            break
+    assert LinkEvent.CONTROLLER_RESET in events
+    assert fake.streams == {int(Stream.STATUS): 20, int(Stream.ENCODER): 200}
+    assert fake.params == {2: 123_000}
+    assert ctrl.session.stats.controller_resets == 1
+
+
+async def test_heartbeat_silence_drops_then_recovers(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, events = rig
+    fake.silent = True
+    await asyncio.sleep(0.3)
+    assert LinkEvent.HEARTBEAT_TIMEOUT in events
+    assert ctrl.link_state is not LinkState.UP
+    fake.silent = False
+    for _ in range(100):
+        await asyncio.sleep(0.02)
+        if ctrl.link_state is LinkState.UP:
+            break
+    assert ctrl.link_state is LinkState.UP

@@ -1,0 +1,291 @@
+"""Session: handshake, retransmission, duplicates, RTO, window, NAK, heartbeat, statistics."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+
+import pytest
+
+from host.link.common import (
+    CommandTimeout,
+    ControllerRejected,
+    LinkDown,
+    LinkEvent,
+    ProtocolMismatch,
+)
+from host.link.session import Session, SessionConfig
+from host.transport.memory import Impairment
+from protocol import PROTOCOL_VERSION, SCHEMA_HASH
+from protocol.enums import NakCode, State
+from protocol.messages import Ack, ParamSet, Stop
+from tests.link.fake_controller import FakeController
+
+FAST = SessionConfig(rto_initial_s=0.02, rto_min_s=0.02, rto_max_s=0.2, max_tries=12)
+
+
+async def start(fake: FakeController, config: SessionConfig = FAST, **wire: Impairment) -> Session:
+    """An open transport to the fake and a started session on it."""
+    transport = fake.wire(**wire)
+    await transport.open()
+    session = Session(transport, config)
+    session.start()
+    return session
+
+
+@pytest.fixture
+async def fake() -> AsyncIterator[FakeController]:
+    ctrl = FakeController()
+    yield ctrl
+    await ctrl.close()
+    if ctrl.transport is not None:
+        await ctrl.transport.close()
+
+
+async def test_handshake_returns_identity(fake: FakeController) -> None:
+    session = await start(fake)
+    ident, rebooted = await session.handshake()
+    await session.stop()
+    assert (ident.boot_id, ident.rx_window, rebooted) == (0x1234, 4, False)
+    assert session.stats.handshakes == 1
+
+
+@pytest.mark.parametrize(
+    ("version", "schema"), [(PROTOCOL_VERSION + 1, SCHEMA_HASH), (PROTOCOL_VERSION, 0xDEADBEEF)]
+)
+async def test_handshake_mismatch_names_both_sides(
+    fake: FakeController, version: int, schema: int
+) -> None:
+    fake.protocol_version, fake.schema_hash = version, schema
+    session = await start(fake)
+    with pytest.raises(ProtocolMismatch) as info:
+        await session.handshake()
+    await session.stop()
+    text = str(info.value)
+    assert f"version {PROTOCOL_VERSION}" in text
+    assert f"version {version}" in text
+    assert f"0x{SCHEMA_HASH:08X}" in text
+    assert f"0x{schema:08X}" in text
+
+
+async def test_new_boot_id_on_rehandshake_is_a_reset(fake: FakeController) -> None:
+    session = await start(fake)
+    await session.handshake()
+    fake.reboot(0x9999)
+    ident, rebooted = await session.handshake()
+    await session.stop()
+    assert rebooted
+    assert ident.boot_id == 0x9999
+    assert session.stats.controller_resets == 1
+
+
+async def test_no_command_lost_or_repeated_under_ten_percent_loss(fake: FakeController) -> None:
+    lossy = Impairment(loss=0.1)
+    cfg = SessionConfig(rto_initial_s=0.01, rto_min_s=0.005, rto_max_s=0.05, max_tries=30)
+    session = await start(fake, cfg, tx=lossy, rx=lossy)
+    await session.handshake()
+    count = 1000
+    replies = await asyncio.gather(
+        *(session.request(ParamSet(param_id=2, value=i)) for i in range(count))
+    )
+    await session.stop()
+    assert len(replies) == count
+    assert sum(fake.executions.values()) == count  # each executed exactly once
+    assert max(fake.executions.values()) == 1
+    assert {r.message.value for r in replies} == set(range(count))  # type: ignore[attr-defined]
+    stats = session.stats
+    assert stats.retransmits > 0
+    assert stats.timeouts == 0
+    total_lost = fake.transport.tx.stats.lost + fake.transport.rx.stats.lost  # type: ignore[union-attr]
+    assert stats.retransmits <= total_lost * 2 + 50
+
+
+async def test_late_duplicate_reply_is_counted_and_ignored(fake: FakeController) -> None:
+    session = await start(fake)
+    await session.handshake()
+    reply = await session.request(Stop())
+    fake.send(Ack(reply.message.req_seq, int(State.READY)))  # type: ignore[attr-defined]
+    fake.send(Ack(reply.message.req_seq, int(State.READY)))  # type: ignore[attr-defined]
+    await asyncio.sleep(0.01)
+    await session.stop()
+    assert session.stats.duplicate_replies == 2
+
+
+async def test_duplicated_frames_do_not_execute_twice(fake: FakeController) -> None:
+    dup = Impairment(duplicate=0.5)
+    session = await start(fake, tx=dup, rx=dup)
+    await session.handshake()
+    for i in range(100):
+        await session.request(ParamSet(param_id=2, value=i))
+    await asyncio.sleep(0.01)
+    await session.stop()
+    assert sum(fake.executions.values()) == 100
+    host_dups = fake.transport.rx.stats.duplicated  # type: ignore[union-attr]
+    assert session.stats.duplicate_replies + session.stats.rx_out_of_order >= host_dups // 2
+
+
+async def test_rto_adapts_to_the_link_rtt(fake: FakeController) -> None:
+    slow = Impairment(delay_s=0.03)
+    session = await start(fake, SessionConfig(rto_initial_s=0.5), tx=slow, rx=slow)
+    await session.handshake()
+    for _ in range(20):
+        await session.request(Stop())
+    await session.stop()
+    rtt = session.stats.rtt
+    assert rtt.samples == 21
+    assert rtt.srtt_s is not None
+    assert 0.055 < rtt.srtt_s < 0.12  # loose above: a loaded CI machine adds latency
+    assert rtt.min_s is not None
+    assert rtt.min_s >= 0.059
+    assert 0.06 < session.rto.rto_s < 0.2  # shrank from 0.5 towards the measured RTT
+    assert session.stats.retransmits == 0
+
+
+async def test_karn_no_sample_from_retransmitted_command(fake: FakeController) -> None:
+    session = await start(fake, SessionConfig(rto_initial_s=0.05, rto_min_s=0.05))
+    await session.handshake()
+    samples = session.stats.rtt.samples
+    fake.silent = True
+    task = asyncio.create_task(session.request(Stop()))
+    await asyncio.sleep(0.07)
+    fake.silent = False
+    await task
+    await session.stop()
+    assert session.stats.retransmits >= 1
+    assert session.stats.rtt.samples == samples
+
+
+async def test_gives_up_after_max_tries_with_backoff(fake: FakeController) -> None:
+    cfg = SessionConfig(rto_initial_s=0.02, rto_min_s=0.02, rto_max_s=0.08, max_tries=5)
+    session = await start(fake, cfg)
+    await session.handshake()
+    fake.silent = True
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    with pytest.raises(CommandTimeout, match="STOP"):
+        await session.request(Stop())
+    elapsed = loop.time() - t0
+    await session.stop()
+    assert session.stats.timeouts == 1
+    assert session.stats.retransmits == 4
+    assert 0.02 + 0.04 + 0.08 * 3 <= elapsed < 1.0  # 20, 40, 80, 80, 80 ms: doubling, capped
+
+
+async def test_window_is_respected(fake: FakeController) -> None:
+    fake.rx_window = 6
+    fake.reply_delay_s = 0.02
+    session = await start(fake, SessionConfig(rto_initial_s=1.0))
+    await session.handshake()
+    await asyncio.gather(*(session.request(Stop()) for _ in range(20)))
+    await session.stop()
+    assert fake.max_inflight_seen == 6  # (2 · rx_window + 1) // 2: see Session._window_open
+
+
+async def test_nak_raises_with_code_and_state(fake: FakeController) -> None:
+    session = await start(fake)
+    await session.handshake()
+    fake.nak_next = (NakCode.NOT_HOMED, State.IDLE)
+    with pytest.raises(ControllerRejected) as info:
+        await session.request(Stop())
+    await session.stop()
+    assert info.value.code is NakCode.NOT_HOMED
+    assert info.value.state is State.IDLE
+    assert session.stats.naks == 1
+
+
+async def test_cancelled_request_frees_its_slot(fake: FakeController) -> None:
+    fake.rx_window = 1
+    session = await start(fake)
+    await session.handshake()
+    fake.silent = True
+    task = asyncio.create_task(session.request(Stop()))
+    await asyncio.sleep(0.01)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    fake.silent = False
+    await asyncio.wait_for(session.request(Stop()), 1.0)
+    await session.stop()
+
+
+async def test_halt_fails_pending_with_link_down(fake: FakeController) -> None:
+    session = await start(fake)
+    await session.handshake()
+    fake.silent = True
+    task = asyncio.create_task(session.request(Stop()))
+    await asyncio.sleep(0.01)
+    await session.stop("unplugged")
+    with pytest.raises(LinkDown, match="unplugged"):
+        await task
+    with pytest.raises(LinkDown):
+        await session.request(Stop())
+
+
+async def test_heartbeat_sent_when_idle_and_silence_declared(fake: FakeController) -> None:
+    events: list[LinkEvent] = []
+    cfg = SessionConfig(heartbeat_interval_s=0.02, dead_after_heartbeats=5, clock_sync_interval_s=0)
+    session = await start(fake, cfg)
+    session.on_event = lambda ev, _detail: events.append(ev)
+    await session.handshake()
+    fake.silent = True
+    await asyncio.sleep(0.2)
+    await session.stop()
+    assert session.stats.heartbeats_out >= 3
+    assert events == [LinkEvent.HEARTBEAT_TIMEOUT]
+
+
+async def test_uptime_regression_reports_controller_reset(fake: FakeController) -> None:
+    events: list[LinkEvent] = []
+    session = await start(fake)
+    session.on_event = lambda ev, _detail: events.append(ev)
+    await session.handshake()
+    fake.send_heartbeat(5000)
+    fake.send_heartbeat(100)
+    fake.reboot(0x4321)
+    fake.send_heartbeat(100)
+    await asyncio.sleep(0.01)
+    await session.stop()
+    assert events == [LinkEvent.RESET_SUSPECTED]
+    assert session.stats.heartbeats_in == 3
+
+
+async def test_stats_match_injected_telemetry_loss(fake: FakeController) -> None:
+    received: list[object] = []
+    lossy = Impairment(loss=0.2)
+    session = await start(fake, SessionConfig(clock_sync_interval_s=0), rx=lossy)
+    session.on_packet = lambda p: received.append(p.message)
+    fake.send_encoder(0, 0)  # anchors the seq tracking (may itself be lost: then the next one)
+    for i in range(1, 500):
+        fake.send_encoder(i * 1000, i)
+    fake.transport.rx.impairment = Impairment()  # type: ignore[union-attr]
+    fake.send_encoder(999_000, 999)  # a last one that surely arrives closes every gap
+    await asyncio.sleep(0.02)
+    await session.stop()
+    lost = fake.transport.rx.stats.lost  # type: ignore[union-attr]
+    first_lost = 0 if received and received[0].encoder_count == 0 else 1  # type: ignore[attr-defined]
+    assert session.stats.rx_lost == lost - first_lost
+    assert session.stats.frames_in == len(received) == 501 - lost
+    assert session.stats.drops.total() == 0
+
+
+async def test_corrupt_bytes_are_counted_not_fatal(fake: FakeController) -> None:
+    session = await start(fake)
+    await session.handshake()
+    fake.transport.inject(b"\x05garbage\x00\x01\x02\x00")  # type: ignore[union-attr]
+    await session.request(Stop())
+    await session.stop()
+    assert session.stats.drops.total() == 2
+
+
+async def test_controller_seq_restart_is_reported(fake: FakeController) -> None:
+    events: list[LinkEvent] = []
+    session = await start(fake, SessionConfig(clock_sync_interval_s=0))
+    session.on_event = lambda ev, _detail: events.append(ev)
+    for i in range(400):
+        fake.send_encoder(i, i)
+    fake.reboot(0x4321)  # its seq starts again at 0
+    fake.send_encoder(0, 0)
+    await asyncio.sleep(0.01)
+    await session.stop()
+    assert events == [LinkEvent.RESET_SUSPECTED]
+    assert session.stats.rx_lost == 0
