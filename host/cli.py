@@ -7,6 +7,8 @@ import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
+from host.control import cli_commands
+
 
 def _version() -> str:
     """Installed distribution version."""
@@ -23,6 +25,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     demo = sub.add_parser("demo", help="run the paper's experiments on the built-in simulator")
     demo.add_argument("--quick", action="store_true", help="a shorter run")
+    cli_commands.add_parsers(sub)
     return parser
 
 
@@ -33,6 +36,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "demo":
         print("orbitar demo: the simulator-backed demo is not built yet; see README.md.")
         return 0
+    handler = getattr(args, "handler", None)
+    if handler is not None:
+        return int(handler(args))
     parser.print_help()
     return 0
 

@@ -1,0 +1,574 @@
+"""The daemon's configuration: one TOML file, validated on load into frozen dataclasses.
+
+The built-in default is the paper's rig. Degrees appear only in the file (keys ending `_deg`);
+the dataclasses hold radians. Every problem in a file is collected and reported at once as a
+`ConfigError` naming the dotted key, the offending value and the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import tomllib
+import typing
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+LINK_KINDS = ("serial", "xbee", "can")
+LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
+SEGMENT_KINDS = ("straight", "arc")
+TRACK_PRESETS = ("runway", "custom")
+XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
+SOCKET_MODE_RE = re.compile(r"^0?[0-7]{3}$")
+
+Parser = Callable[[Any], Any]  # returns the converted value or raises ValueError(reason)
+
+
+class ConfigError(ValueError):
+    """A configuration file is wrong; `problems` lists every `key = value: reason` found."""
+
+    def __init__(self, problems: list[str]) -> None:
+        super().__init__("invalid configuration:\n  " + "\n  ".join(problems))
+        self.problems = problems
+
+
+def spec(
+    default: Any = dataclasses.MISSING,
+    *,
+    lo: float | None = None,
+    hi: float | None = None,
+    choices: tuple[Any, ...] | None = None,
+    key: str | None = None,
+    deg: bool = False,
+    parse: Parser | None = None,
+    each: bool = False,
+    doc: str = "",
+) -> Any:
+    """A dataclass field with its rule: range, choices, TOML key, degrees, parser, per-item."""
+    meta: dict[str, Any] = {"lo": lo, "hi": hi, "choices": choices, "key": key, "deg": deg}
+    meta.update(parse=parse, each=each, doc=doc)
+    return field(default=default, metadata=meta)
+
+
+def _parse_matrix4(value: Any) -> tuple[tuple[float, ...], ...]:
+    """A 4×4 list of numbers whose last row is 0 0 0 1."""
+    rows = value if isinstance(value, list) else None
+    if rows is None or len(rows) != 4 or any(not isinstance(r, list) or len(r) != 4 for r in rows):
+        raise ValueError("expected a 4×4 list of numbers")
+    if any(isinstance(x, bool) or not isinstance(x, int | float) for r in rows for x in r):
+        raise ValueError("expected numbers only")
+    if [float(x) for x in rows[3]] != [0.0, 0.0, 0.0, 1.0]:
+        raise ValueError("the last row of a homogeneous transform must be [0, 0, 0, 1]")
+    return tuple(tuple(float(x) for x in r) for r in rows)
+
+
+def _parse_source(value: Any) -> str | int:
+    """Camera source: "sim", a device index >= 0, a file path or a URL."""
+    if isinstance(value, bool) or not isinstance(value, int | str):
+        raise ValueError('expected "sim", a device index, a file path or a URL')
+    if isinstance(value, int) and value < 0:
+        raise ValueError("a device index must be >= 0")
+    if isinstance(value, str) and not value:
+        raise ValueError("must not be empty")
+    return value
+
+
+def _parse_destination(value: Any) -> str:
+    """`host:port` with a port in 1..65535."""
+    if not isinstance(value, str) or ":" not in value:
+        raise ValueError('expected "host:port"')
+    host, _, port = value.rpartition(":")
+    if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
+        raise ValueError('expected "host:port" with a port in 1..65535')
+    return value
+
+
+def _parse_vector3(value: Any) -> tuple[float, float, float]:
+    """Three numbers."""
+    if not isinstance(value, list) or len(value) != 3:
+        raise ValueError("expected a list of 3 numbers")
+    if any(isinstance(x, bool) or not isinstance(x, int | float) for x in value):
+        raise ValueError("expected numbers only")
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+def _parse_mode(value: Any) -> int:
+    """An octal permission string such as "0660"."""
+    if not isinstance(value, str) or not SOCKET_MODE_RE.match(value):
+        raise ValueError('expected an octal mode string such as "0660"')
+    return int(value, 8)
+
+
+def _parse_regex(pattern: re.Pattern[str], reason: str) -> Parser:
+    """A parser accepting strings that match `pattern`."""
+
+    def parse(value: Any) -> str:
+        if not isinstance(value, str) or not pattern.match(value):
+            raise ValueError(reason)
+        return value
+
+    return parse
+
+
+# M_cr of the paper's eq. 14: the camera in the head frame, millimetres.
+PAPER_M_CR = (
+    (0.9907, 0.1353, -0.0064, 50.843),
+    (-0.1396, 0.9915, 0.0093, 47.094),
+    (0.0083, -0.0085, 0.9990, 76.177),
+    (0.0, 0.0, 0.0, 1.0),
+)
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """How the host reaches the controller."""
+
+    kind: str = spec(
+        "serial",
+        choices=LINK_KINDS,
+        doc="serial (a UART), xbee (XBee API frames over a UART) or can (python-can)",
+    )
+    url: str = spec(
+        "/dev/ttyUSB0", doc="serial device or URL, e.g. /dev/ttyUSB0 or socket://127.0.0.1:5555"
+    )
+    baud: int = spec(115200, lo=1200, hi=4_000_000, doc="UART bit rate")
+    xbee_address: str = spec(
+        "000000000000FFFF",
+        parse=_parse_regex(XBEE_ADDRESS_RE, "expected 16 hex digits"),
+        doc="64-bit address of the controller's XBee, 16 hex digits",
+    )
+    xbee_api_mode: int = spec(2, choices=(1, 2), doc="XBee API mode: 1 (plain) or 2 (escaped)")
+    can_interface: str = spec("slcan", doc="python-can interface name, e.g. socketcan or slcan")
+    can_channel: str = spec("/dev/ttyACM0", doc="python-can channel, e.g. can0 or /dev/ttyACM0")
+    can_bitrate: int = spec(500_000, lo=10_000, hi=1_000_000, doc="CAN bit rate, bit/s")
+    node_id: int = spec(1, lo=1, hi=127, doc="controller node id on the CAN bus, 1..127")
+    heartbeat_ms: int = spec(200, lo=10, hi=10_000, doc="host heartbeat period")
+    reconnect_max_s: float = spec(
+        10.0, lo=0.1, hi=3600.0, doc="longest wait between reconnect attempts"
+    )
+
+
+@dataclass(frozen=True)
+class SegmentConfig:
+    """One piece of track: a straight of `length_mm` or an arc of `radius_mm` turning `angle`."""
+
+    kind: str = spec(
+        "straight",
+        choices=SEGMENT_KINDS,
+        doc="serial (a UART), xbee (XBee API frames over a UART) or can (python-can)",
+    )
+    length_mm: float = spec(0.0, lo=0.0, hi=1e6, doc="length of a straight")
+    radius_mm: float = spec(0.0, lo=0.0, hi=1e6, doc="radius of an arc")
+    angle_rad: float = spec(
+        0.0,
+        key="angle_deg",
+        deg=True,
+        lo=-360.0,
+        hi=360.0,
+        doc="turn of an arc, positive counter-clockwise",
+    )
+
+
+def runway_segments(
+    long_mm: float = 6000.0, wide_mm: float = 3000.0, radius_mm: float = 1000.0
+) -> tuple[SegmentConfig, ...]:
+    """The paper's rounded-rectangle runway as straights and quarter arcs (counter-clockwise)."""
+    quarter = SegmentConfig("arc", 0.0, radius_mm, math.pi / 2)
+    long_side = SegmentConfig("straight", long_mm - 2 * radius_mm)
+    short_side = SegmentConfig("straight", wide_mm - 2 * radius_mm)
+    return (long_side, quarter, short_side, quarter) * 2
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """The chain track; `segments` is filled from the preset unless the preset is "custom"."""
+
+    preset: str = spec(
+        "runway",
+        choices=TRACK_PRESETS,
+        doc='track shape: "runway" (the paper: 6 m x 3 m, corner radius 1 m) or "custom"',
+    )
+    segments: tuple[SegmentConfig, ...] = field(default_factory=runway_segments)
+    height_mm: float = spec(4000.0, lo=0.0, hi=100_000.0, doc="track height above the floor")
+
+
+@dataclass(frozen=True)
+class HeadConfig:
+    """The pan/tilt head: camera-in-head transform M_cr and the travel limits."""
+
+    m_cr: tuple[tuple[float, ...], ...] = spec(
+        PAPER_M_CR,
+        parse=_parse_matrix4,
+        doc="camera-in-head transform M_cr (paper eq. 14), rows, millimetres",
+    )
+    pan_min_rad: float = spec(
+        -math.pi,
+        key="pan_min_deg",
+        deg=True,
+        lo=-360.0,
+        hi=360.0,
+        doc="lowest pan the head may be sent to",
+    )
+    pan_max_rad: float = spec(
+        math.pi,
+        key="pan_max_deg",
+        deg=True,
+        lo=-360.0,
+        hi=360.0,
+        doc="highest pan the head may be sent to",
+    )
+    tilt_min_rad: float = spec(
+        -math.pi / 2,
+        key="tilt_min_deg",
+        deg=True,
+        lo=-90.0,
+        hi=90.0,
+        doc="lowest tilt the head may be sent to",
+    )
+    tilt_max_rad: float = spec(
+        math.radians(30.0),
+        key="tilt_max_deg",
+        deg=True,
+        lo=-90.0,
+        hi=90.0,
+        doc="highest tilt the head may be sent to",
+    )
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """The camera: where frames come from and the intrinsics of Table 1."""
+
+    source: str | int = spec(
+        "sim", parse=_parse_source, doc='"sim", a device index, a video file or a URL'
+    )
+    width: int = spec(640, lo=1, hi=16384, doc="frame width, pixels")
+    height: int = spec(480, lo=1, hi=16384, doc="frame height, pixels")
+    fps: float = spec(30.0, lo=0.1, hi=1000.0, doc="frames per second")
+    fx: float = spec(3676.462, lo=1e-6, hi=1e6, doc="focal length along x, pixels (Table 1)")
+    fy: float = spec(3676.478, lo=1e-6, hi=1e6, doc="focal length along y, pixels (Table 1)")
+    skew: float = spec(0.263, lo=-1e6, hi=1e6, doc="skew r of the intrinsic matrix (Table 1)")
+    u0: float = spec(645.342, lo=-1e5, hi=1e5, doc="principal point u, pixels")
+    v0: float = spec(508.259, lo=-1e5, hi=1e5, doc="principal point v, pixels")
+    k1: float = spec(1.30, lo=-1e3, hi=1e3, doc="radial distortion k1")
+    k2: float = spec(1.88, lo=-1e3, hi=1e3, doc="radial distortion k2")
+    p1: float = spec(0.0, lo=-1e3, hi=1e3, doc="tangential distortion p1")
+    p2: float = spec(0.0, lo=-1e3, hi=1e3, doc="tangential distortion p2")
+    k3: float = spec(0.0, lo=-1e3, hi=1e3, doc="radial distortion k3")
+    exposure_latency_ms: float = spec(
+        0.0,
+        lo=-1000.0,
+        hi=1000.0,
+        doc="time from the exposure midpoint to the frame's host timestamp",
+    )
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The workpiece model projected into the frames."""
+
+    path: str = spec("builtin:manipulator", doc='workpiece model file or "builtin:manipulator"')
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """How far back the pose buffer reaches."""
+
+    horizon_ms: float = spec(
+        2000.0, lo=10.0, hi=600_000.0, doc="how much pose history the buffer keeps"
+    )
+
+
+@dataclass(frozen=True)
+class FreedConfig:
+    """FreeD D1 output; the axis mapping is a yaw and an origin of FreeD's frame in our world."""
+
+    enabled: bool = spec(False, doc="switch this part on")
+    destinations: tuple[str, ...] = spec(
+        ("127.0.0.1:40000",), parse=_parse_destination, each=True, doc='UDP "host:port" receivers'
+    )
+    camera_id: int = spec(1, lo=0, hi=255, doc="FreeD camera id byte")
+    origin_mm: tuple[float, float, float] = spec(
+        (0.0, 0.0, 0.0), parse=_parse_vector3, doc="FreeD origin in our world frame"
+    )
+    yaw_rad: float = spec(
+        0.0,
+        key="yaw_deg",
+        deg=True,
+        lo=-360.0,
+        hi=360.0,
+        doc="FreeD frame turned about world z by this angle (see docs/FREED.md)",
+    )
+    zoom: int = spec(0, lo=0, hi=0xFFFFFF, doc="raw FreeD zoom value (fixed-focus lens)")
+    focus: int = spec(0, lo=0, hi=0xFFFFFF, doc="raw FreeD focus value")
+
+
+@dataclass(frozen=True)
+class OutputsConfig:
+    """Every output of the daemon."""
+
+    freed: FreedConfig = field(default_factory=FreedConfig)
+
+
+@dataclass(frozen=True)
+class ControlConfig:
+    """The control socket and its optional TCP listener."""
+
+    socket_path: str = spec("/run/orbitar/control.sock", doc="Unix control socket")
+    socket_mode: int = spec(0o660, parse=_parse_mode, doc="permissions of the socket file")
+    socket_group: str = spec("", doc="group owning the socket file (empty: the daemon's group)")
+    tcp_enabled: bool = spec(False, doc="also listen on TCP (needs a token in the hello request)")
+    tcp_host: str = spec("127.0.0.1", doc="TCP listen address")
+    tcp_port: int = spec(7431, lo=0, hi=65535, doc="TCP listen port")
+    operator_token: str = spec("", doc="TCP token granting motion commands")
+    viewer_token: str = spec("", doc="TCP token granting read-only access")
+    queue_max: int = spec(
+        256, lo=1, hi=100_000, doc="events buffered per subscriber before the oldest are dropped"
+    )
+
+
+@dataclass(frozen=True)
+class RecordingConfig:
+    """What the daemon records and how much it keeps."""
+
+    enabled: bool = spec(False, doc="switch this part on")
+    dir: str = spec("/var/lib/orbitar/recordings", doc="recording directory")
+    rotate_mb: float = spec(64.0, lo=0.001, hi=100_000.0, doc="start a new file above this size")
+    keep_files: int = spec(10, lo=1, hi=100_000, doc="recording files kept, oldest deleted first")
+    include_frames: bool = spec(False, doc="also record JPEG frames")
+
+
+@dataclass(frozen=True)
+class LogConfig:
+    """Logging threshold."""
+
+    level: str = spec("info", choices=LOG_LEVELS, doc="debug, info, warning, error or critical")
+
+
+@dataclass(frozen=True)
+class SystemdConfig:
+    """Service manager integration."""
+
+    ready_grace_s: float = spec(
+        15.0, lo=0.0, hi=3600.0, doc="report READY=1 after this long even if the link is not up"
+    )
+    status_interval_s: float = spec(
+        5.0, lo=0.1, hi=3600.0, doc="period of STATUS= updates to systemd"
+    )
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole configuration."""
+
+    link: LinkConfig = field(default_factory=LinkConfig)
+    track: TrackConfig = field(default_factory=TrackConfig)
+    head: HeadConfig = field(default_factory=HeadConfig)
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    outputs: OutputsConfig = field(default_factory=OutputsConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    systemd: SystemdConfig = field(default_factory=SystemdConfig)
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a TOML file; ConfigError lists every problem."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError([f"{path}: cannot read: {exc}"]) from exc
+    return loads_config(text)
+
+
+def loads_config(text: str) -> Config:
+    """Validate TOML text into a Config."""
+    try:
+        table = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError([f"TOML syntax: {exc}"]) from exc
+    return config_from_dict(table)
+
+
+def config_from_dict(table: Mapping[str, Any]) -> Config:
+    """Validate a parsed TOML table into a Config."""
+    errors: list[str] = []
+    config = _build(Config, table, "", errors)
+    errors += _cross_checks(config, table)
+    if errors:
+        raise ConfigError(errors)
+    return typing.cast(Config, config)
+
+
+def _build(cls: type, table: Mapping[str, Any], prefix: str, errors: list[str]) -> Any:
+    """Build dataclass `cls` from `table`, appending problems to `errors`."""
+    hints = typing.get_type_hints(cls)
+    fields = {f.metadata.get("key") or f.name: f for f in dataclasses.fields(cls)}
+    for key in table:
+        if key not in fields:
+            errors.append(f"{prefix}{key}: unknown key (known: {', '.join(sorted(fields))})")
+    values: dict[str, Any] = {}
+    for key, fld in fields.items():
+        if key in table:
+            converted = _convert(hints[fld.name], fld, table[key], prefix + key, errors)
+            if converted is not None:
+                values[fld.name] = converted
+    return cls(**values)
+
+
+def _convert(
+    hint: Any, fld: dataclasses.Field[Any], value: Any, key: str, errors: list[str]
+) -> Any:
+    """Check one value against its field; None (and a recorded error) when it is wrong."""
+    origin = typing.get_origin(hint)
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, dict):
+            errors.append(f"{key} = {value!r}: expected a table")
+            return None
+        return _build(typing.cast(type, hint), value, key + ".", errors)
+    if origin is tuple and dataclasses.is_dataclass(typing.get_args(hint)[0]):
+        return _convert_table_array(typing.get_args(hint)[0], value, key, errors)
+    if fld.metadata.get("each"):
+        return _convert_list(fld, value, key, errors)
+    try:
+        return _check_scalar(hint, fld.metadata, value)
+    except ValueError as exc:
+        errors.append(f"{key} = {value!r}: {exc}")
+        return None
+
+
+def _convert_table_array(cls: Any, value: Any, key: str, errors: list[str]) -> Any:
+    """An array of tables such as [[track.segments]]."""
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        errors.append(f"{key} = {value!r}: expected an array of tables")
+        return None
+    return tuple(_build(cls, v, f"{key}[{i}].", errors) for i, v in enumerate(value))
+
+
+def _convert_list(fld: dataclasses.Field[Any], value: Any, key: str, errors: list[str]) -> Any:
+    """A list whose items each pass the field's parser."""
+    if not isinstance(value, list):
+        errors.append(f"{key} = {value!r}: expected a list")
+        return None
+    out = []
+    for i, item in enumerate(value):
+        try:
+            out.append(fld.metadata["parse"](item))
+        except ValueError as exc:
+            errors.append(f"{key}[{i}] = {item!r}: {exc}")
+    return tuple(out)
+
+
+def _check_scalar(hint: Any, meta: Mapping[str, Any], value: Any) -> Any:
+    """Type, choice and range check of a single value; ValueError names the reason."""
+    if meta.get("parse"):
+        return meta["parse"](value)
+    value = _check_type(hint, value)
+    if meta.get("choices") is not None and value not in meta["choices"]:
+        raise ValueError(f"must be one of {', '.join(map(repr, meta['choices']))}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if (lo is not None and value < lo) or (hi is not None and value > hi) or value != value:
+        raise ValueError(f"out of range [{lo}, {hi}]")
+    return math.radians(value) if meta.get("deg") else value
+
+
+def _check_type(hint: Any, value: Any) -> Any:
+    """Accept `value` if it has the type of `hint` (an int is a fine float; a bool is neither)."""
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ValueError("expected true or false")
+        return value
+    if isinstance(value, bool):
+        raise ValueError(f"expected {hint.__name__}, got a boolean")
+    if hint is float and isinstance(value, int | float):
+        return float(value)
+    if not isinstance(value, hint):
+        raise ValueError(f"expected {hint.__name__}, got {type(value).__name__}")
+    return value
+
+
+def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
+    """Rules that span several keys."""
+    errors = []
+    head, track = config.head, config.track
+    if head.pan_min_rad >= head.pan_max_rad:
+        errors.append("head.pan_min_deg: must be below head.pan_max_deg")
+    if head.tilt_min_rad >= head.tilt_max_rad:
+        errors.append("head.tilt_min_deg: must be below head.tilt_max_deg")
+    has_segments = "segments" in table.get("track", {})
+    if track.preset == "custom" and not has_segments:
+        errors.append('track.segments: required when track.preset = "custom"')
+    if track.preset != "custom" and has_segments:
+        errors.append(f'track.segments: given with preset {track.preset!r}; use "custom"')
+    for i, seg in enumerate(track.segments):
+        errors += _segment_problems(i, seg)
+    if config.control.tcp_enabled and not config.control.operator_token:
+        errors.append("control.operator_token: required when control.tcp_enabled = true")
+    return errors
+
+
+def _segment_problems(index: int, seg: SegmentConfig) -> list[str]:
+    """A straight needs a length; an arc needs a radius and an angle."""
+    key = f"track.segments[{index}]"
+    if seg.kind == "straight" and seg.length_mm <= 0:
+        return [f"{key}.length_mm = {seg.length_mm}: a straight needs a positive length"]
+    if seg.kind == "arc" and (seg.radius_mm <= 0 or seg.angle_rad == 0):
+        return [f"{key}: an arc needs radius_mm > 0 and angle_deg != 0"]
+    return []
+
+
+def default_config_text() -> str:
+    """The commented default file, generated from the dataclasses; it loads to `Config()`."""
+    lines = ["# Orbitar daemon configuration. Defaults: the paper's rig. Angles in degrees.", ""]
+    _emit_section(Config(), "", lines)
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def _emit_section(obj: Any, prefix: str, lines: list[str]) -> None:
+    """Append `[prefix]` and the commented keys of dataclass instance `obj`."""
+    nested = []
+    if prefix:
+        lines += [f"[{prefix}]", f"# {type(obj).__doc__}"]
+    for fld in dataclasses.fields(obj):
+        value = getattr(obj, fld.name)
+        if dataclasses.is_dataclass(value):
+            nested.append((value, f"{prefix}.{fld.name}".lstrip(".")))
+        elif fld.name == "segments":
+            lines.append(_SEGMENTS_EXAMPLE)
+        else:
+            lines.append(f"# {fld.metadata.get('doc', '')}")
+            lines.append(f"{fld.metadata.get('key') or fld.name} = {_toml_value(fld, value)}")
+    lines.append("")
+    for value, name in nested:
+        _emit_section(value, name, lines)
+
+
+_SEGMENTS_EXAMPLE = """# With preset = "custom", list the pieces of track in order, e.g.:
+# [[track.segments]]
+# kind = "straight"
+# length_mm = 4000.0
+# [[track.segments]]
+# kind = "arc"
+# radius_mm = 1000.0
+# angle_deg = 90.0"""
+
+
+def _toml_value(fld: dataclasses.Field[Any], value: Any) -> str:
+    """A default value written as TOML (radians back to degrees, modes in octal)."""
+    if fld.metadata.get("deg"):
+        return repr(round(math.degrees(value), 9))
+    if fld.name == "socket_mode":
+        return f'"{value:04o}"'
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_toml_value(fld, v) for v in value) + "]"
+    return repr(value)

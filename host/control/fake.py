@@ -1,0 +1,200 @@
+"""A stand-in controller for tests and for running the daemon before the real link is wired.
+
+It keeps the controller's state machine and integrates motion lazily from the clock (no
+background task), refuses what the firmware would refuse, and records every call so tests can
+check that a bad request never reached it. Selected in the daemon only by the test-only
+environment variable ORBITAR_FAKE_CONTROLLER=1.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Mapping
+from typing import Any
+
+from host.control.api import PoseSample, PoseSink
+from protocol import PARAMS, ParamId, State
+
+DEFAULT_SPEED_MM_S = 100.0  # the paper's 0.1 m/s
+
+
+class FakeControllerError(RuntimeError):
+    """The fake refused a command the way the firmware would (a NAK)."""
+
+
+class FakeController:
+    """Implements `host.control.api.ControllerLike` in memory."""
+
+    def __init__(self, connect_delay_s: float = 0.0, fail_connect: bool = False) -> None:
+        self.calls: list[tuple[str, tuple[Any, ...]]] = []
+        self.state = State.IDLE
+        self.params = {spec.id: spec.default for spec in PARAMS}
+        self.head_rad = (0.0, 0.0)
+        self._connected = False
+        self._connect_delay_s = connect_delay_s
+        self._fail_connect = fail_connect
+        self._from_mm = 0.0
+        self._to_mm = 0.0
+        self._speed_mm_s = 0.0
+        self._t0 = time.monotonic()
+        self.frames_in = 0
+
+    @property
+    def connected(self) -> bool:
+        """True after connect, until close."""
+        return self._connected
+
+    @property
+    def position_mm(self) -> float:
+        """Where the trolley is now on its current ramp-free profile."""
+        travel = self._to_mm - self._from_mm
+        done = self._speed_mm_s * (time.monotonic() - self._t0)
+        if done >= abs(travel):
+            if self.state is State.MOVING:
+                self.state = State.READY
+            return self._to_mm
+        return self._from_mm + (done if travel > 0 else -done)
+
+    async def connect(self) -> None:
+        """Pretend to open the link (optionally slowly, or failing)."""
+        self.calls.append(("connect", ()))
+        if self._fail_connect:
+            raise ConnectionError("fake controller: no device")
+        if self._connect_delay_s:
+            await asyncio.sleep(self._connect_delay_s)
+        self._connected = True
+
+    async def close(self) -> None:
+        """Drop the link."""
+        self.calls.append(("close", ()))
+        self._connected = False
+
+    async def home(self) -> None:
+        """Homing completes at once in the fake."""
+        self._command("home")
+        self._require(State.IDLE, State.READY)
+        self._go(0.0, 0.0, 1.0)
+        self.state = State.READY
+
+    async def move_to(self, position_mm: float, speed_mm_s: float | None = None) -> None:
+        """Start an absolute move."""
+        self._command("move_to", position_mm, speed_mm_s)
+        self._require(State.READY, State.MOVING)
+        self._go(self.position_mm, position_mm, speed_mm_s or DEFAULT_SPEED_MM_S)
+        self.state = State.MOVING
+
+    async def jog(self, velocity_mm_s: float) -> None:
+        """Jog: modelled as a long move in the direction of travel."""
+        self._command("jog", velocity_mm_s)
+        self._require(State.IDLE, State.READY, State.MOVING)
+        target = self.position_mm + (1e6 if velocity_mm_s > 0 else -1e6)
+        self._go(self.position_mm, target, abs(velocity_mm_s))
+        self.state = State.MOVING if velocity_mm_s else State.READY
+
+    async def stop(self) -> None:
+        """Stop where we are."""
+        self._command("stop")
+        here = self.position_mm
+        self._go(here, here, 1.0)
+        if self.state is State.MOVING:
+            self.state = State.READY
+
+    async def estop(self) -> None:
+        """Latch the e-stop."""
+        self._command("estop")
+        here = self.position_mm
+        self._go(here, here, 1.0)
+        self.state = State.ESTOP
+
+    async def clear_fault(self) -> None:
+        """Release a latch back to IDLE."""
+        self._command("clear_fault")
+        if self.state in (State.ESTOP, State.FAULT):
+            self.state = State.IDLE
+
+    async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
+        """Point the head."""
+        self._command("set_head", pan_rad, tilt_rad)
+        self.head_rad = (pan_rad, tilt_rad)
+
+    async def get_param(self, param: ParamId) -> int:
+        """Read a parameter."""
+        self._command("get_param", param)
+        return self.params[param]
+
+    async def set_param(self, param: ParamId, value: int) -> None:
+        """Write a parameter."""
+        self._command("set_param", param, value)
+        self.params[param] = value
+
+    async def persist_params(self) -> None:
+        """Nothing to store in memory."""
+        self._command("persist_params")
+
+    def snapshot(self) -> Mapping[str, Any]:
+        """State as plain values."""
+        position = self.position_mm
+        return {
+            "state": self.state.name,
+            "faults": 0,
+            "position_mm": position,
+            "target_mm": self._to_mm,
+            "head_rad": list(self.head_rad),
+        }
+
+    def link_stats(self) -> Mapping[str, Any]:
+        """Counters of the fake link."""
+        return {"connected": self._connected, "commands": len(self.calls), "frames_lost": 0}
+
+    def _command(self, name: str, *args: Any) -> None:
+        """Record a call; refuse it when the link is down."""
+        self.calls.append((name, args))
+        if not self._connected:
+            raise FakeControllerError("link is down")
+
+    def _require(self, *states: State) -> None:
+        """NAK BAD_STATE unless in one of `states`."""
+        if self.state not in states:
+            raise FakeControllerError(f"NAK BAD_STATE in {self.state.name}")
+
+    def _go(self, from_mm: float, to_mm: float, speed_mm_s: float) -> None:
+        """Start a constant-speed profile now."""
+        self._from_mm, self._to_mm, self._speed_mm_s = from_mm, to_mm, speed_mm_s
+        self._t0 = time.monotonic()
+
+
+class FakeFrameLoop:
+    """Poses from the fake controller at a fixed rate: camera 4 m up looking along +Y."""
+
+    def __init__(
+        self,
+        controller: FakeController,
+        sink: PoseSink,
+        fps: float = 30.0,
+        height_mm: float = 4000.0,
+    ) -> None:
+        self.controller = controller
+        self.sink = sink
+        self.period_s = 1.0 / fps
+        self.height_mm = height_mm
+        self.frames = 0
+        self._fps = 0.0
+
+    @property
+    def fps(self) -> float:
+        """The configured rate once frames flow."""
+        return self._fps
+
+    async def run(self) -> None:
+        """Emit a pose per period until cancelled."""
+        while True:
+            await asyncio.sleep(self.period_s)
+            x = self.controller.position_mm
+            matrix = ((1.0, 0.0, 0.0, x), (0.0, 0.0, 1.0, 0.0), (0.0, -1.0, 0.0, self.height_mm))
+            pose = PoseSample(
+                time.monotonic_ns(), (*matrix, (0.0, 0.0, 0.0, 1.0)), self.controller.state.name, x
+            )
+            self.frames += 1
+            self._fps = 1.0 / self.period_s
+            self.sink(pose)

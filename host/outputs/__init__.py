@@ -1,0 +1,1 @@
+"""Outputs of the daemon: poses and overlays to other programs."""

@@ -1,0 +1,375 @@
+"""The daemon's lifecycle: start, keep the link up, serve, report to systemd, stop cleanly.
+
+`Daemon` takes the configuration and two factories (controller, frame loop), so the real
+`host.link.Controller` and frame loop plug in without this module knowing them. Everything runs
+on one event loop; the systemd watchdog is pinged from that loop, so a stalled loop is noticed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import enum
+import logging
+import signal
+import time
+from collections.abc import Callable, Coroutine
+from pathlib import Path
+from typing import Any
+
+from host.config import Config, ConfigError, load_config
+from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
+from host.control.ops import OpContext
+from host.control.server import ControlServer, ControlServerError
+from host.outputs.freed import FreedSender
+from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
+from host.service.logsetup import set_level
+from host.service.notify import Notifier
+
+log = logging.getLogger(__name__)
+
+RecordTap = Callable[[str, int, Any], None]  # kind, host time ns, data
+ControllerFactory = Callable[[Config, RecordTap], ControllerLike]
+# The frame loop gets the tap too, to record frame timestamps (and JPEGs if records_frames).
+FrameLoopFactory = Callable[[Config, ControllerLike, PoseSink, RecordTap], FrameLoopLike]
+CalibrationProvider = Callable[[], dict[str, Any]]
+
+STOP_ACK_TIMEOUT_S = 0.8  # SIGTERM budget: stop ack + link close + socket close < 2 s
+LINK_CLOSE_TIMEOUT_S = 0.4
+STATE_POLL_S = 0.1
+LINK_POLL_S = 0.25
+FIRST_RETRY_S = 0.5
+RESTART_SECTIONS = ("link", "track", "head", "camera", "model", "registration", "control")
+
+
+class Phase(enum.Enum):
+    """Where the daemon is in its life."""
+
+    STARTING = "starting"
+    RUNNING = "running"
+    STOPPING = "stopping"
+    STOPPED = "stopped"
+
+
+class Daemon:
+    """One run of the service, from start() to a clean exit."""
+
+    def __init__(
+        self,
+        config: Config,
+        controller_factory: ControllerFactory,
+        frame_loop_factory: FrameLoopFactory | None = None,
+        *,
+        config_path: str | Path | None = None,
+        notifier: Notifier | None = None,
+        calibration: CalibrationProvider | None = None,
+    ) -> None:
+        self.config = config
+        self.calibration = calibration or self._config_calibration
+        self.config_path = config_path
+        self.notifier = notifier or Notifier()
+        self.phase = Phase.STARTING
+        self.latest_pose: PoseSample | None = None
+        self.link_error = "not connected yet"
+        self.ready_sent = False
+        self.output_errors = 0
+        self.exit_code = 0
+        self.recorder: RecordingWriter | None = None
+        self.freed: FreedSender | None = None
+        self.controller = controller_factory(config, self.record)
+        self.frame_loop = (
+            frame_loop_factory(config, self.controller, self.on_pose, self.record)
+            if frame_loop_factory
+            else None
+        )
+        self.server = ControlServer(self._op_context(), config.control)
+        self._stop = asyncio.Event()
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._started_s = time.monotonic()
+
+    async def run(self) -> int:
+        """Serve until SIGTERM/SIGINT or request_stop(); the process exit code."""
+        loop = asyncio.get_running_loop()
+        self._install_signals(loop)
+        try:
+            await self._start()
+        except (ControlServerError, OSError) as exc:
+            log.error("cannot start", extra={"kv": {"error": exc}})
+            await self._shutdown()
+            self._remove_signals(loop)
+            return 1
+        try:
+            await self._stop.wait()
+        finally:
+            await self._shutdown()
+            self._remove_signals(loop)
+        return self.exit_code
+
+    def request_stop(self) -> None:
+        """Begin a clean shutdown (SIGTERM, SIGINT)."""
+        log.info("stop requested")
+        self._stop.set()
+
+    def on_pose(self, sample: PoseSample) -> None:
+        """Fan a registered pose out to subscribers, FreeD and the recording; never raises."""
+        self.latest_pose = sample
+        data = sample.to_dict()
+        try:
+            self.server.publish("pose", data)
+            if self.freed is not None:
+                self.freed.send(sample.T_w_c)
+            self.record(KIND_POSE, sample.t_ns, data)
+        except Exception as exc:  # an output must never break the frame loop
+            self.output_errors += 1
+            if self.output_errors <= 3:
+                log.exception("pose output failed", extra={"kv": {"error": exc}})
+
+    def record(self, kind: str, t_ns: int, data: Any) -> None:
+        """Append to the recording if one is open (the controller's tap calls this too)."""
+        if self.recorder is not None:
+            self.recorder.write(kind, t_ns, data)
+
+    @property
+    def records_frames(self) -> bool:
+        """True when the recording keeps JPEG frames (the frame loop encodes only then)."""
+        return self.recorder is not None and self.recorder.include_frames
+
+    def status(self) -> dict[str, Any]:
+        """The service part of the status op."""
+        fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
+        return {
+            "phase": self.phase.value,
+            "uptime_s": round(time.monotonic() - self._started_s, 3),
+            "fps": fps,
+            "clients": self.server.client_count,
+            "link_error": "" if self.controller.connected else self.link_error,
+            "freed": self.freed.stats() if self.freed else None,
+            "recording": str(self.recorder.current) if self.recorder else None,
+            "output_errors": self.output_errors,
+        }
+
+    async def reload(self) -> list[str]:
+        """SIGHUP: apply log level, outputs and recording; report what needs a restart."""
+        if self.config_path is None:
+            log.warning("reload ignored: the daemon was started without a config file")
+            return []
+        try:
+            new = load_config(self.config_path)
+        except ConfigError as exc:
+            log.error("reload rejected, keeping the running settings", extra={"kv": {"why": exc}})
+            return []
+        try:
+            applied = await self._apply(new)
+        except OSError as exc:
+            log.error("reload could not open an output", extra={"kv": {"error": exc}})
+            applied = []
+        skipped = [s for s in RESTART_SECTIONS if getattr(new, s) != getattr(self.config, s)]
+        log.info("reloaded", extra={"kv": {"applied": ",".join(applied) or "nothing"}})
+        if skipped:
+            log.warning("changes need a restart", extra={"kv": {"sections": ",".join(skipped)}})
+        self.record(KIND_EVENT, time.monotonic_ns(), {"reload": applied, "skipped": skipped})
+        return applied
+
+    async def _apply(self, new: Config) -> list[str]:
+        """Swap in the sections that change without reconnecting."""
+        applied = []
+        if new.log != self.config.log:
+            set_level(new.log.level)
+            applied.append("log")
+        if new.outputs != self.config.outputs:
+            await self._restart_freed(new)
+            applied.append("outputs")
+        if new.recording != self.config.recording:
+            self._restart_recorder(new)
+            applied.append("recording")
+        self.config = dataclasses.replace(
+            self.config, log=new.log, outputs=new.outputs, recording=new.recording
+        )
+        return applied
+
+    async def _start(self) -> None:
+        """Open the socket and the outputs, then start the background tasks."""
+        await self.server.start()
+        await self._restart_freed(self.config)
+        self._restart_recorder(self.config)
+        for job in (self._link_keeper(), self._watchdog(), self._status_reporter()):
+            self._spawn(job)
+        self._spawn(self._state_publisher())
+        self._spawn(self._ready_grace())
+        if self.frame_loop is not None:
+            self._spawn(self.frame_loop.run())
+        self.phase = Phase.RUNNING
+        self.notifier.status("starting: connecting to the controller")
+
+    async def _shutdown(self) -> None:
+        """Controlled stop of the trolley, then close everything, within about 2 s."""
+        self.phase = Phase.STOPPING
+        self.notifier.stopping("stopping: halting the trolley")
+        for task in self._tasks:
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._halt_and_close()
+        await self.server.close()
+        if self.freed is not None:
+            self.freed.close()
+        if self.recorder is not None:
+            self.recorder.close()
+        self.notifier.close()
+        self.phase = Phase.STOPPED
+        log.info("stopped")
+
+    async def _halt_and_close(self) -> None:
+        """Ask for a controlled stop and wait (bounded) for its ack; then close the link."""
+        if self.controller.connected:
+            try:
+                await asyncio.wait_for(self.controller.stop(), STOP_ACK_TIMEOUT_S)
+                log.info("controlled stop acknowledged")
+            except Exception as exc:  # any failure here: the firmware watchdog stops it anyway
+                log.warning("stop not acknowledged", extra={"kv": {"error": exc}})
+        try:
+            await asyncio.wait_for(self.controller.close(), LINK_CLOSE_TIMEOUT_S)
+        except Exception as exc:
+            log.warning("link close failed", extra={"kv": {"error": exc}})
+
+    async def _link_keeper(self) -> None:
+        """Connect, and reconnect with capped doubling backoff whenever the link drops."""
+        backoff = FIRST_RETRY_S
+        while True:
+            if not self.controller.connected:
+                try:
+                    await self.controller.connect()
+                except Exception as exc:  # every connect failure is retried, none is fatal
+                    self.link_error = f"{type(exc).__name__}: {exc}"
+                    log.warning("controller not reachable", extra={"kv": {"error": exc}})
+                    await asyncio.sleep(backoff)
+                    backoff = min(backoff * 2, self.config.link.reconnect_max_s)
+                    continue
+                backoff = FIRST_RETRY_S
+                self._link_up()
+            await asyncio.sleep(LINK_POLL_S)
+
+    def _link_up(self) -> None:
+        """The link came up: tell systemd (once) and the subscribers."""
+        log.info("controller link up")
+        self.record(KIND_EVENT, time.monotonic_ns(), {"link": "up"})
+        if not self.ready_sent:
+            self.ready_sent = True
+            self.notifier.ready("running: controller link up")
+        self.server.publish("link", dict(self.controller.link_stats()))
+
+    async def _ready_grace(self) -> None:
+        """READY=1 after the grace period even without a link, saying why."""
+        await asyncio.sleep(self.config.systemd.ready_grace_s)
+        if not self.ready_sent:
+            self.ready_sent = True
+            self.notifier.ready(f"running without controller: {self.link_error}")
+
+    async def _watchdog(self) -> None:
+        """WATCHDOG=1 at half the period systemd asked for, from this very loop."""
+        interval = self.notifier.watchdog_interval_s
+        if interval is None:
+            return
+        while True:
+            self.notifier.watchdog()
+            await asyncio.sleep(interval)
+
+    async def _status_reporter(self) -> None:
+        """Periodic STATUS= line and `link` event."""
+        while True:
+            await asyncio.sleep(self.config.systemd.status_interval_s)
+            up = self.controller.connected
+            fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
+            link = "link up" if up else f"link down ({self.link_error})"
+            self.notifier.status(f"{link}; {fps:.1f} fps; {self.server.client_count} clients")
+            self.server.publish("link", {"up": up, **self.controller.link_stats()})
+
+    async def _state_publisher(self) -> None:
+        """A `state` event whenever the controller snapshot changes."""
+        last: dict[str, Any] | None = None
+        while True:
+            snapshot = dict(self.controller.snapshot())
+            if snapshot != last:
+                self.server.publish("state", snapshot)
+                last = snapshot
+            await asyncio.sleep(STATE_POLL_S)
+
+    async def _restart_freed(self, config: Config) -> None:
+        """(Re)open the FreeD sender as configured."""
+        if self.freed is not None:
+            self.freed.close()
+            self.freed = None
+        if config.outputs.freed.enabled:
+            sender = FreedSender(config.outputs.freed)
+            await sender.start()
+            self.freed = sender
+
+    def _restart_recorder(self, config: Config) -> None:
+        """(Re)open the recording as configured; a failure is logged, not fatal."""
+        if self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+        rec = config.recording
+        if not rec.enabled:
+            return
+        writer = RecordingWriter(rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames)
+        try:
+            writer.open()
+        except OSError as exc:
+            log.error("recording disabled", extra={"kv": {"dir": rec.dir, "error": exc}})
+            return
+        self.recorder = writer
+
+    def _op_context(self) -> OpContext:
+        """What the control ops may see."""
+        head = self.config.head
+        return OpContext(
+            self.controller,
+            latest_pose=lambda: self.latest_pose,
+            service_status=self.status,
+            calibration=lambda: self.calibration(),
+            pan_limits_rad=(head.pan_min_rad, head.pan_max_rad),
+            tilt_limits_rad=(head.tilt_min_rad, head.tilt_max_rad),
+        )
+
+    def _config_calibration(self) -> dict[str, Any]:
+        """The calibration in use: from the config until a calibration run replaces it."""
+        cam = self.config.camera
+        intrinsics = {k: getattr(cam, k) for k in ("fx", "fy", "skew", "u0", "v0")}
+        distortion = {k: getattr(cam, k) for k in ("k1", "k2", "p1", "p2", "k3")}
+        m_cr = [list(row) for row in self.config.head.m_cr]
+        return {
+            "source": "config",
+            "intrinsics": intrinsics,
+            "distortion": distortion,
+            "m_cr": m_cr,
+        }
+
+    def _spawn(self, job: Coroutine[Any, Any, Any]) -> None:
+        """Run a background job, logging (not swallowing silently) an unexpected end."""
+        task = asyncio.create_task(job)
+        self._tasks.add(task)
+        task.add_done_callback(self._job_done)
+
+    def _job_done(self, task: asyncio.Task[Any]) -> None:
+        """A background job ended: fine when cancelled, a logged error otherwise."""
+        self._tasks.discard(task)
+        if not task.cancelled() and task.exception() is not None:
+            # A core job died: exit non-zero so systemd's Restart=on-failure starts afresh.
+            log.error("background job failed, stopping", exc_info=task.exception())
+            self.exit_code = 1
+            self._stop.set()
+
+    def _install_signals(self, loop: asyncio.AbstractEventLoop) -> None:
+        """SIGTERM/SIGINT stop, SIGHUP reloads."""
+        with contextlib.suppress(NotImplementedError, RuntimeError):
+            loop.add_signal_handler(signal.SIGTERM, self.request_stop)
+            loop.add_signal_handler(signal.SIGINT, self.request_stop)
+            loop.add_signal_handler(signal.SIGHUP, lambda: self._spawn(self.reload()))
+
+    @staticmethod
+    def _remove_signals(loop: asyncio.AbstractEventLoop) -> None:
+        """Give the signals back."""
+        for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+            with contextlib.suppress(NotImplementedError, RuntimeError):
+                loop.remove_signal_handler(sig)

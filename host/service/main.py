@@ -1,0 +1,83 @@
+"""`orbitar daemon`: load the configuration, set up logging and run the Daemon."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from host.config import Config, ConfigError, load_config
+from host.control.api import ControllerLike, PoseSink
+from host.control.fake import FakeController, FakeFrameLoop
+from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory, RecordTap
+from host.service.logsetup import setup_logging
+
+log = logging.getLogger(__name__)
+
+# Tests only: run the daemon against the in-memory fake until the real link is wired in.
+FAKE_ENV = "ORBITAR_FAKE_CONTROLLER"  # "1" works, "fail" never connects
+
+
+def add_parser(subparsers: Any) -> None:
+    """Register `orbitar daemon`."""
+    parser = subparsers.add_parser("daemon", help="run the service (systemd starts this)")
+    parser.add_argument("--config", help="TOML configuration file (default: built-in rig)")
+    parser.add_argument("--log-level", help="override [log] level")
+    parser.set_defaults(handler=run)
+
+
+def run(
+    args: argparse.Namespace,
+    controller_factory: ControllerFactory | None = None,
+    frame_loop_factory: FrameLoopFactory | None = None,
+) -> int:
+    """Run the daemon to completion; the process exit code."""
+    try:
+        config = load_config(args.config) if args.config else Config()
+    except ConfigError as exc:
+        print(f"orbitar daemon: {exc}", file=sys.stderr)
+        return 2
+    try:
+        setup_logging(args.log_level or config.log.level)
+    except ValueError as exc:
+        print(f"orbitar daemon: {exc}", file=sys.stderr)
+        return 2
+    if controller_factory is None:
+        controller_factory, frame_loop_factory = _fake_factories()
+    if controller_factory is None:
+        print("orbitar daemon: no controller factory wired (host.link)", file=sys.stderr)
+        return 2
+    daemon = Daemon(config, controller_factory, frame_loop_factory, config_path=args.config)
+    return asyncio.run(daemon.run())
+
+
+def _fake_factories() -> tuple[ControllerFactory | None, FrameLoopFactory | None]:
+    """The in-memory fake, only when the test environment variable asks for it."""
+    mode = os.environ.get(FAKE_ENV, "")
+    if not mode:
+        return None, None
+
+    def controller(config: Config, tap: RecordTap) -> ControllerLike:
+        return FakeController(fail_connect=mode == "fail")
+
+    def frames(
+        config: Config, ctl: ControllerLike, sink: PoseSink, tap: RecordTap
+    ) -> FakeFrameLoop:
+        assert isinstance(ctl, FakeController)
+        return FakeFrameLoop(ctl, sink, config.camera.fps, config.track.height_mm)
+
+    log.warning("running with the FAKE controller", extra={"kv": {"env": FAKE_ENV}})
+    return controller, frames
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m host.service daemon …` without the full CLI."""
+    parser = argparse.ArgumentParser(prog="orbitar")
+    sub = parser.add_subparsers(dest="command", required=True)
+    add_parser(sub)
+    args = parser.parse_args(argv)
+    return int(args.handler(args))

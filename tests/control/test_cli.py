@@ -1,0 +1,111 @@
+"""The CLI commands against a live control socket (subprocesses, as a user runs them)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from host.config import Config, ControlConfig, loads_config
+from host.control.api import PoseSample
+from host.control.fake import FakeController
+from host.control.ops import OpContext
+from host.control.server import ControlServer
+
+POSE = PoseSample(1, ((1, 0, 0, 10.0), (0, 0, 1, 20.0), (0, -1, 0, 4000.0), (0, 0, 0, 1)), "READY")
+
+
+async def cli(*argv: str) -> tuple[int, str, str]:
+    """Run `python -m host.control ARGV` and collect exit code, stdout, stderr."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "host.control", *argv,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    out, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode is not None
+    return proc.returncode, out.decode(), err.decode()
+
+
+@pytest.fixture
+async def served(tmp_path: Path) -> AsyncIterator[tuple[ControlServer, FakeController, str]]:
+    fake = FakeController()
+    await fake.connect()
+    config = ControlConfig(socket_path=str(tmp_path / "c.sock"))
+    server = ControlServer(OpContext(fake, latest_pose=lambda: POSE), config)
+    await server.start()
+    yield server, fake, config.socket_path
+    await server.close()
+
+
+async def test_motion_commands(served: tuple[ControlServer, FakeController, str]) -> None:
+    _, fake, sock = served
+    assert (await cli("home", "--socket", sock))[0] == 0
+    code, out, _ = await cli("move", "1500", "--speed", "80", "--socket", sock)
+    assert (code, out.strip()) == (0, "ok")
+    assert (await cli("head", "90", "-30", "--socket", sock))[0] == 0
+    assert (await cli("estop", "--socket", sock))[0] == 0
+    assert fake.calls[-3][1] == (1500.0, 80.0)
+    assert fake.head_rad == pytest.approx((math.pi / 2, -math.pi / 6))
+    assert fake.state.name == "ESTOP"
+
+
+async def test_status_prints_fields(served: tuple[ControlServer, FakeController, str]) -> None:
+    code, out, _ = await cli("status", "--socket", served[2])
+    assert code == 0
+    assert "link_up: True" in out
+    assert "state: IDLE" in out
+
+
+async def test_refused_request_exits_1_with_reason(
+    served: tuple[ControlServer, FakeController, str],
+) -> None:
+    code, _, err = await cli("move", "100", "--socket", served[2])  # not homed
+    assert code == 1
+    assert "move refused: failed" in err
+    code, _, err = await cli("head", "0", "100", "--socket", served[2])
+    assert code == 1
+    assert "out_of_range" in err
+
+
+async def test_no_daemon_exits_1(tmp_path: Path) -> None:
+    code, _, err = await cli("status", "--socket", str(tmp_path / "none.sock"))
+    assert code == 1
+    assert "daemon not running" in err
+
+
+async def test_watch_counts_updates(served: tuple[ControlServer, FakeController, str]) -> None:
+    server, _, sock = served
+    proc = asyncio.create_task(cli("watch", "--count", "3", "--socket", sock))
+    while not proc.done():
+        server.publish("pose", POSE.to_dict())
+        server.publish("state", {"state": "MOVING", "position_mm": 12.5})
+        await asyncio.sleep(0.05)
+    code, out, _ = await proc
+    assert code == 0
+    assert "camera_mm: 10.0 20.0 4000.0" in out or "state: MOVING" in out
+    assert out.count("state:") == 3
+
+
+async def test_config_check_and_default(tmp_path: Path) -> None:
+    code, text, _ = await cli("config", "default")
+    assert code == 0
+    assert loads_config(text) == Config()
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[link]\nkind = "x"\nbaud = 0\n')
+    code, _, err = await cli("config", "check", str(bad))
+    assert code == 2
+    assert "link.kind" in err
+    assert "link.baud" in err
+    good = tmp_path / "good.toml"
+    good.write_text(text)
+    assert (await cli("config", "check", str(good)))[0] == 0
+
+
+async def test_systemd_unit_prints_the_unit() -> None:
+    code, out, _ = await cli("systemd-unit", "--exec", "/opt/o/bin/orbitar")
+    assert code == 0
+    assert "ExecStart=/opt/o/bin/orbitar daemon --config /etc/orbitar/orbitar.toml" in out

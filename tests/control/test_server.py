@@ -1,0 +1,268 @@
+"""The control socket: ops, errors, roles, subscriptions and slow subscribers."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import stat
+import struct
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+
+from host.config import ControlConfig
+from host.control.api import PoseSample
+from host.control.client import ControlClient, ControlRequestError
+from host.control.fake import FakeController
+from host.control.ops import OpContext
+from host.control.server import ControlServer, ControlServerError
+from host.control.wire import MAX_MESSAGE_BYTES
+from protocol import ParamId
+
+IDENTITY = ((1.0, 0, 0, 0), (0, 1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0))
+
+
+@pytest.fixture
+async def fake() -> FakeController:
+    controller = FakeController()
+    await controller.connect()
+    return controller
+
+
+@pytest.fixture
+async def server(tmp_path: Path, fake: FakeController) -> AsyncIterator[ControlServer]:
+    config = ControlConfig(
+        socket_path=str(tmp_path / "ctl.sock"),
+        tcp_enabled=True,
+        tcp_port=0,
+        operator_token="op-secret",
+        viewer_token="view-secret",
+        queue_max=8,
+    )
+    pose = PoseSample(123, IDENTITY, "READY", 5.0)
+    srv = ControlServer(OpContext(fake, latest_pose=lambda: pose), config)
+    await srv.start()
+    yield srv
+    await srv.close()
+
+
+@pytest.fixture
+async def client(server: ControlServer) -> AsyncIterator[ControlClient]:
+    c = await ControlClient.connect_unix(server.config.socket_path)
+    yield c
+    await c.close()
+
+
+async def test_socket_file_has_configured_mode(server: ControlServer) -> None:
+    mode = os.stat(server.config.socket_path).st_mode
+    assert stat.S_ISSOCK(mode)
+    assert stat.S_IMODE(mode) == 0o660
+
+
+async def test_status_reports_controller_and_pose(client: ControlClient) -> None:
+    status = await client.request("status")
+    assert status["link_up"] is True
+    assert status["controller"]["state"] == "IDLE"
+    assert status["pose"]["t_ns"] == 123
+    assert status["pose"]["T_w_c"][3] == [0.0, 0.0, 0.0, 1.0]
+
+
+async def test_motion_ops_reach_the_controller(client: ControlClient, fake: FakeController) -> None:
+    await client.request("home")
+    await client.request("move", position_mm=300.0, speed_mm_s=50.0)
+    await client.request("head", pan_rad=0.5, tilt_rad=-0.2)
+    await client.request("stop")
+    names = [name for name, _ in fake.calls]
+    assert names[-4:] == ["home", "move_to", "set_head", "stop"]
+    assert fake.calls[-3] == ("move_to", (300.0, 50.0))
+    assert fake.head_rad == (0.5, -0.2)
+
+
+async def test_controller_refusal_is_a_failed_reply(client: ControlClient) -> None:
+    with pytest.raises(ControlRequestError) as exc:
+        await client.request("move", position_mm=10.0)  # not homed: the fake NAKs
+    assert exc.value.code == "failed"
+    assert "BAD_STATE" in exc.value.message
+
+
+@pytest.mark.parametrize(
+    ("op", "args", "code"),
+    [
+        ("move", {}, "bad_args"),
+        ("move", {"position_mm": "far"}, "bad_args"),
+        ("move", {"position_mm": math.nan}, "bad_args"),
+        ("jog", {"velocity_mm_s": 1e9}, "out_of_range"),
+        ("head", {"pan_rad": 0.0, "tilt_rad": 3.0}, "out_of_range"),
+        ("param_set", {"param": "MAX_SPEED_UM_S", "value": 10**9}, "out_of_range"),
+        ("param_set", {"param": "NO_SUCH", "value": 1}, "bad_args"),
+        ("fly", {}, "unknown_op"),
+        ("subscribe", {"topics": ["weather"]}, "bad_args"),
+    ],
+)
+async def test_bad_requests_never_reach_the_controller(
+    client: ControlClient, fake: FakeController, op: str, args: dict[str, Any], code: str
+) -> None:
+    before = len(fake.calls)
+    with pytest.raises(ControlRequestError) as exc:
+        await client.request(op, **args)
+    assert exc.value.code == code
+    assert len(fake.calls) == before
+
+
+async def test_params_by_name_and_id(client: ControlClient, fake: FakeController) -> None:
+    await client.request("param_set", param="WATCHDOG_MS", value=800)
+    got = await client.request("param_get", param=int(ParamId.WATCHDOG_MS))
+    assert got == {"param": "WATCHDOG_MS", "value": 800, "unit": "ms"}
+    await client.request("param_persist")
+    assert fake.calls[-1][0] == "persist_params"
+
+
+async def test_link_down_is_unavailable(client: ControlClient, fake: FakeController) -> None:
+    await fake.close()
+    with pytest.raises(ControlRequestError) as exc:
+        await client.request("home")
+    assert exc.value.code == "unavailable"
+    assert (await client.request("status"))["link_up"] is False
+
+
+async def test_garbage_gets_error_reply_and_connection_survives(client: ControlClient) -> None:
+    body = b"\xc1\xc1\xc1"  # 0xc1 is never valid msgpack
+    await client.send_raw(struct.pack(">I", len(body)) + body)
+    array = msgpack.packb([1, 2, 3])
+    await client.send_raw(struct.pack(">I", len(array)) + array)
+    no_id = msgpack.packb({"op": "status"})
+    await client.send_raw(struct.pack(">I", len(no_id)) + no_id)
+    assert (await client.request("status"))["link_up"] is True
+    codes = [m["error"]["code"] for m in client.unmatched]
+    assert codes == ["bad_request", "bad_request", "bad_request"]
+
+
+async def test_oversized_request_gets_error_then_close(client: ControlClient) -> None:
+    await client.send_raw(struct.pack(">I", MAX_MESSAGE_BYTES + 1))
+    with pytest.raises(ConnectionError):
+        await client.next_event(timeout_s=5)
+    assert client.unmatched[0]["error"]["code"] == "too_large"
+
+
+async def test_daemon_survives_oversized_client(server: ControlServer) -> None:
+    c1 = await ControlClient.connect_unix(server.config.socket_path)
+    await c1.send_raw(struct.pack(">I", 10**9))
+    await c1.close()
+    async with await ControlClient.connect_unix(server.config.socket_path) as c2:
+        assert "link_up" in await c2.request("status")
+
+
+async def test_subscription_delivers_events(server: ControlServer, client: ControlClient) -> None:
+    result = await client.request("subscribe", topics=["state", "pose"])
+    assert result["topics"] == ["pose", "state"]
+    server.publish("link", {"ignored": True})
+    server.publish("state", {"state": "READY"})
+    event = await client.next_event(timeout_s=5)
+    assert event == {"topic": "state", "data": {"state": "READY"}}
+    await client.request("unsubscribe", topics=["state"])
+    server.publish("state", {"state": "MOVING"})
+    server.publish("pose", {"n": 1})
+    assert (await client.next_event(timeout_s=5))["topic"] == "pose"
+
+
+async def test_slow_subscriber_drops_oldest_and_is_told(
+    server: ControlServer, client: ControlClient
+) -> None:
+    await client.request("subscribe", topics=["pose"])
+    for i in range(5000):
+        # No await in between: the writer cannot run, exactly like a client that never reads.
+        server.publish("pose", {"n": i})
+    assert server.stats["events_dropped"] > 0
+    seen: list[int] = []
+    overflow = None
+    while len(seen) < 8 or overflow is None:
+        event = await client.next_event(timeout_s=5)
+        if event["topic"] == "overflow":
+            overflow = event["data"]
+        else:
+            seen.append(event["data"]["n"])
+            if seen[-1] == 4999:
+                break
+    assert overflow is not None
+    assert overflow["dropped"] > 0
+    assert seen[-1] == 4999  # the newest survives, the oldest went
+    assert seen == list(range(5000 - server.queue_max, 5000))
+
+
+async def test_tcp_requires_hello_and_viewer_cannot_move(
+    server: ControlServer, fake: FakeController
+) -> None:
+    assert server.tcp_port
+    async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
+        with pytest.raises(ControlRequestError) as exc:
+            await c.request("status")
+        assert exc.value.code == "unauthorized"
+        with pytest.raises(ControlRequestError):
+            await c.request("hello", token="wrong")
+        assert (await c.request("hello", token="view-secret"))["role"] == "viewer"
+        assert "controller" in await c.request("status")
+        before = len(fake.calls)
+        with pytest.raises(ControlRequestError) as exc:
+            await c.request("estop")
+        assert exc.value.code == "forbidden"
+        assert len(fake.calls) == before
+
+
+async def test_tcp_operator_may_move(server: ControlServer, fake: FakeController) -> None:
+    assert server.tcp_port
+    async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
+        assert (await c.request("hello", token="op-secret"))["role"] == "operator"
+        await c.request("estop")
+    assert fake.state.name == "ESTOP"
+
+
+async def test_stop_is_not_queued_behind_a_slow_request(
+    server: ControlServer, client: ControlClient, fake: FakeController
+) -> None:
+    gate = asyncio.Event()
+
+    async def slow_home() -> None:
+        await gate.wait()
+
+    fake.home = slow_home  # type: ignore[method-assign]
+    home = asyncio.create_task(client.request("home"))
+    await client.request("stop")  # answered while home still waits
+    assert not home.done()
+    gate.set()
+    await home
+
+
+async def test_second_daemon_on_same_path_is_refused(server: ControlServer) -> None:
+    other = ControlServer(OpContext(None), server.config)
+    with pytest.raises(ControlServerError, match="another daemon"):
+        await other.start()
+    await asyncio.sleep(0.1)  # the probe's connection comes and goes on the first server
+    assert (await other_status(server))["link_up"] is True
+
+
+async def other_status(server: ControlServer) -> dict[str, object]:
+    """A status request over a fresh connection."""
+    async with await ControlClient.connect_unix(server.config.socket_path) as c:
+        result: dict[str, object] = await c.request("status")
+        return result
+
+
+async def test_stale_socket_file_is_replaced(tmp_path: Path) -> None:
+    import socket
+
+    path = tmp_path / "stale.sock"
+    s = socket.socket(socket.AF_UNIX)
+    s.bind(str(path))
+    s.close()  # the file stays, nobody listens: what a crashed daemon leaves
+    srv = ControlServer(OpContext(None), ControlConfig(socket_path=str(path)))
+    await srv.start()
+    try:
+        async with await ControlClient.connect_unix(str(path)) as c:
+            assert (await c.request("status"))["link_up"] is False
+    finally:
+        await srv.close()
+    assert not path.exists()

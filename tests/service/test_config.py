@@ -1,0 +1,141 @@
+"""Configuration: defaults are the paper's rig, every problem is named, the default file loads."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from host.config import (
+    PAPER_M_CR,
+    Config,
+    ConfigError,
+    default_config_text,
+    load_config,
+    loads_config,
+)
+
+
+def problems(text: str) -> list[str]:
+    """The problems ConfigError lists for `text`."""
+    with pytest.raises(ConfigError) as exc:
+        loads_config(text)
+    return exc.value.problems
+
+
+def test_defaults_are_the_papers_rig() -> None:
+    config = Config()
+    assert config.camera.fx == 3676.462
+    assert (config.camera.width, config.camera.height, config.camera.fps) == (640, 480, 30.0)
+    assert config.head.m_cr == PAPER_M_CR
+    assert config.track.height_mm == 4000.0
+    length = sum(
+        s.length_mm if s.kind == "straight" else s.radius_mm * s.angle_rad
+        for s in config.track.segments
+    )
+    assert length == pytest.approx(2 * (4000 + 1000) + 2 * math.pi * 1000)
+    assert config.control.tcp_enabled is False
+
+
+def test_default_file_loads_to_the_defaults(tmp_path: Path) -> None:
+    text = default_config_text()
+    assert text.count("\n# ") > 40  # commented, key by key
+    path = tmp_path / "orbitar.toml"
+    path.write_text(text)
+    assert load_config(path) == Config()
+
+
+def test_empty_file_is_the_default() -> None:
+    assert loads_config("") == Config()
+
+
+def test_degrees_become_radians() -> None:
+    config = loads_config("[head]\npan_min_deg = -90\npan_max_deg = 90.0\n")
+    assert config.head.pan_min_rad == pytest.approx(-math.pi / 2)
+    assert config.head.pan_max_rad == pytest.approx(math.pi / 2)
+
+
+def test_every_problem_is_reported_with_key_value_and_reason() -> None:
+    found = problems(
+        """
+[link]
+kind = "pigeon"
+baud = "fast"
+node_id = 200
+xbee_address = "12"
+colour = "red"
+[camera]
+fps = true
+[control]
+socket_mode = "rw"
+[outputs.freed]
+destinations = ["127.0.0.1:40000", "nowhere"]
+[nonsense]
+x = 1
+"""
+    )
+    text = "\n".join(found)
+    assert "link.kind = 'pigeon': must be one of 'serial', 'xbee', 'can'" in text
+    assert "link.baud = 'fast': expected int, got str" in text
+    assert "link.node_id = 200: out of range [1, 127]" in text
+    assert "link.xbee_address = '12': expected 16 hex digits" in text
+    assert "link.colour: unknown key" in text
+    assert "camera.fps = True: expected float, got a boolean" in text
+    assert "control.socket_mode = 'rw'" in text
+    assert "outputs.freed.destinations[1] = 'nowhere'" in text
+    assert "nonsense: unknown key" in text
+    assert len(found) == 9
+
+
+def test_custom_track_segments() -> None:
+    config = loads_config(
+        """
+[track]
+preset = "custom"
+[[track.segments]]
+kind = "straight"
+length_mm = 2000
+[[track.segments]]
+kind = "arc"
+radius_mm = 500
+angle_deg = 180
+"""
+    )
+    assert [s.kind for s in config.track.segments] == ["straight", "arc"]
+    assert config.track.segments[1].angle_rad == pytest.approx(math.pi)
+
+
+def test_segment_rules() -> None:
+    found = problems(
+        '[track]\npreset = "custom"\n[[track.segments]]\nkind = "arc"\nradius_mm = 0\n'
+        '[[track.segments]]\nkind = "straight"\nlength = 5\n'
+    )
+    assert any("track.segments[0]: an arc needs" in p for p in found)
+    assert any("track.segments[1].length: unknown key" in p for p in found)
+    assert problems('[track]\npreset = "custom"\n') == [
+        'track.segments: required when track.preset = "custom"'
+    ]
+
+
+def test_matrix_and_cross_checks() -> None:
+    found = problems(
+        "[head]\nm_cr = [[1, 0, 0], [0, 1, 0]]\ntilt_min_deg = 20\ntilt_max_deg = 10\n"
+        "[control]\ntcp_enabled = true\n"
+    )
+    assert any(p.startswith("head.m_cr = ") and "4×4" in p for p in found)
+    assert "head.tilt_min_deg: must be below head.tilt_max_deg" in found
+    assert "control.operator_token: required when control.tcp_enabled = true" in found
+
+
+def test_camera_source_forms() -> None:
+    assert loads_config("[camera]\nsource = 2\n").camera.source == 2
+    url = "rtsp://127.0.0.1/x"
+    assert loads_config(f'[camera]\nsource = "{url}"\n').camera.source == url
+    assert any("device index must be >= 0" in p for p in problems("[camera]\nsource = -1\n"))
+
+
+def test_toml_syntax_and_unreadable_file(tmp_path: Path) -> None:
+    assert problems("[link\n")[0].startswith("TOML syntax")
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path / "missing.toml")
