@@ -23,6 +23,10 @@ class TransportError(ConnectionError):
     """The link cannot be opened or used; the message says which device and why."""
 
 
+class FrameTooLargeError(TransportError):
+    """A frame longer than the backend can carry was refused; the link stays up."""
+
+
 class LinkState(enum.Enum):
     """Where a transport is in its life."""
 
@@ -54,6 +58,7 @@ class Transport(abc.ABC):
     """Base class of every link backend (serial, XBee, CAN)."""
 
     scheme: ClassVar[str]  # backend name used in config and BACKENDS
+    max_frame_bytes: ClassVar[int | None] = None  # largest frame the medium carries, if limited
 
     def __init__(self) -> None:
         self.stats = TransportStats()
@@ -90,6 +95,10 @@ class Transport(abc.ABC):
         """Queue one wire frame for sending without blocking; TransportError when not open."""
         if self.state is not LinkState.OPEN:
             raise TransportError(f"{self.describe()} is {self.state.value}")
+        limit = self.max_frame_bytes
+        if limit is not None and len(frame) > limit:
+            self.stats.bump("oversize_refused")
+            raise FrameTooLargeError(f"{self.describe()}: frame of {len(frame)} bytes > {limit}")
         try:
             self._write(frame)
         except (OSError, ValueError) as exc:

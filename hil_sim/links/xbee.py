@@ -1,0 +1,213 @@
+"""Two XBee modules and the air between them, seen from the host's UART.
+
+The host talks API frames (mode 1 or 2) to a pty as it would to its own module. The emulator
+unpacks Transmit Requests (0x10), refuses RF data over 84 bytes, sends the rest over the air at
+~35 kbit/s with latency and loss (each failed attempt retried by the MAC up to 3 times) to the
+device endpoint, and answers each request with a Transmit Status (0x8B) giving the retries and
+the outcome. Bytes from the device are packetised at 0x00 frame delimiters, as the controller's
+firmware hands whole frames to its module, and arrive at the host as Receive Packets (0x90)
+from the controller module's 64-bit address.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hil_sim.links.endpoint import ByteEndpoint, FrameSplitter
+from hil_sim.links.faults import FaultConfig, FaultInjector
+from hil_sim.links.pacing import PacedPipe, uart_rate_bytes_s
+from hil_sim.links.pty_uart import PtyPort
+from host.transport.xbee_frames import (
+    MAX_RF_PAYLOAD,
+    ApiFrameDecoder,
+    DeliveryStatus,
+    FrameType,
+    ReceivePacket,
+    TransmitRequest,
+    TransmitStatus,
+    encode_api_frame,
+)
+
+CONTROLLER_ADDR64 = 0x0013A200_40A1B2C3
+AIR_RATE_BPS = 35_000  # effective 802.15.4 throughput after MAC overhead
+AIR_OVERHEAD_BYTES = 18  # MAC header, addresses, FCS per RF packet
+AIR_LATENCY_S = 0.002
+MAC_RETRIES = 3
+
+
+@dataclass
+class ModuleCounters:
+    """What the emulated module did with each frame."""
+
+    tx_requests: int = 0
+    delivered: int = 0
+    failed: int = 0
+    retries: int = 0
+    too_large: int = 0
+    wrong_address: int = 0
+    unknown_frames: int = 0
+    rx_packets: int = 0
+    up_lost: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class _AirPacket:
+    """RF data on its way to the device, and the status owed to the host."""
+
+    data: bytes
+    frame_id: int
+    retries: int
+
+
+class XBeeModule:
+    """The host's XBee (API mode on a pty) plus the air and the controller's XBee."""
+
+    def __init__(
+        self,
+        endpoint: ByteEndpoint,
+        api_mode: int = 1,
+        uart_baud: int = 115200,
+        controller_addr64: int = CONTROLLER_ADDR64,
+        air_rate_bps: int = AIR_RATE_BPS,
+        air_faults: FaultConfig | None = None,
+        link_path: str | None = None,
+        latency_s: float = AIR_LATENCY_S,
+    ) -> None:
+        if api_mode not in (1, 2):
+            raise ValueError(f"api_mode must be 1 or 2, got {api_mode}")
+        self.endpoint = endpoint
+        self.escaped = api_mode == 2
+        self.controller_addr64 = controller_addr64
+        self.latency_s = latency_s
+        base = air_faults or FaultConfig()
+        self.air_down = FaultInjector(base)
+        self.air_up = FaultInjector(FaultConfig(**{**vars(base), "seed": base.seed + 1}))
+        self.counters = ModuleCounters()
+        self.port = PtyPort(self._from_uart, link_path)
+        self._decoder = ApiFrameDecoder(escaped=self.escaped)
+        self._splitter = FrameSplitter(MAX_RF_PAYLOAD)
+        air_rate = air_rate_bps / 8
+        self._uart_in: PacedPipe[bytes] = PacedPipe(self._on_uart, uart_rate_bytes_s(uart_baud))
+        self._uart_out: PacedPipe[bytes] = PacedPipe(self.port.write, uart_rate_bytes_s(uart_baud))
+        self._air_down: PacedPipe[_AirPacket] = PacedPipe(self._arrive_device, air_rate)
+        self._air_up: PacedPipe[bytes] = PacedPipe(self._arrive_host, air_rate)
+        self._pipes = (self._uart_in, self._uart_out, self._air_down, self._air_up)
+
+    @property
+    def path(self) -> str:
+        """What the host's XBee transport opens."""
+        return self.port.path
+
+    @property
+    def decoder_stats(self) -> dict[str, int]:
+        """The module's API parser counters (bad checksums from the host, …)."""
+        return dict(vars(self._decoder.stats))
+
+    async def start(self) -> None:
+        """Power up: pty ready, device connected."""
+        self.port.open()
+        for pipe in self._pipes:
+            pipe.start()
+        self.endpoint.set_sink(self._from_device)
+
+    async def stop(self) -> None:
+        """Power down and remove the pty."""
+        self.endpoint.set_sink(None)
+        await self.disconnect(count=False)
+        self.port.remove_link()
+
+    async def disconnect(self, count: bool = True) -> None:
+        """Unplug the host's module: its pty disappears, frames in flight are lost."""
+        if count:
+            self.air_down.note_disconnect()
+        for pipe in self._pipes:
+            await pipe.stop()
+        self.port.close()
+
+    async def reconnect(self) -> None:
+        """Plug it back in behind the same symlink, with a fresh parser."""
+        self._decoder = ApiFrameDecoder(escaped=self.escaped)
+        self.port.open()
+        for pipe in self._pipes:
+            pipe.start()
+
+    # ---- host → device ---------------------------------------------------------------------
+
+    def _from_uart(self, data: bytes) -> None:
+        """Host UART bytes arrive at the module's baud rate."""
+        self._uart_in.push(data, len(data))
+
+    def _on_uart(self, data: bytes) -> None:
+        """Parse API frames out of the UART stream."""
+        for frame_data in self._decoder.feed(data):
+            if frame_data[0] == FrameType.TRANSMIT_REQUEST and len(frame_data) >= 14:
+                self._transmit(TransmitRequest.parse(frame_data))
+            else:
+                self.counters.unknown_frames += 1
+
+    def _transmit(self, request: TransmitRequest) -> None:
+        """Send over the air with MAC retries, or answer at once with the failure."""
+        self.counters.tx_requests += 1
+        if len(request.data) > MAX_RF_PAYLOAD:
+            self.counters.too_large += 1
+            self._status(request.frame_id, 0, DeliveryStatus.PAYLOAD_TOO_LARGE)
+            return
+        if request.dest_addr64 != self.controller_addr64:
+            # Nobody answers at that address: every MAC attempt goes unacknowledged.
+            self.counters.wrong_address += 1
+            self._status(request.frame_id, MAC_RETRIES, DeliveryStatus.MAC_ACK_FAILURE)
+            return
+        attempts, data = _attempts(self.air_down, request.data)
+        airtime = attempts * (len(request.data) + AIR_OVERHEAD_BYTES)
+        if data is None:
+            self._air_down.push(_AirPacket(b"", request.frame_id, MAC_RETRIES), airtime)
+            return
+        packet = _AirPacket(data, request.frame_id, attempts - 1)
+        self._air_down.push(packet, airtime, self.latency_s + self.air_down.delay_s())
+
+    def _arrive_device(self, packet: _AirPacket) -> None:
+        """The air is done with a packet: hand it to the device and report to the host."""
+        self.counters.retries += packet.retries
+        if not packet.data:
+            self.counters.failed += 1
+            self._status(packet.frame_id, MAC_RETRIES, DeliveryStatus.MAC_ACK_FAILURE)
+            return
+        self.counters.delivered += 1
+        self.endpoint.write(packet.data)
+        self._status(packet.frame_id, packet.retries, DeliveryStatus.SUCCESS)
+
+    def _status(self, frame_id: int, retries: int, delivery: int) -> None:
+        """Transmit Status to the host, unless it asked for none (frame id 0)."""
+        if frame_id:
+            self._to_uart(TransmitStatus(frame_id, retries, delivery).frame_data())
+
+    # ---- device → host ---------------------------------------------------------------------
+
+    def _from_device(self, data: bytes) -> None:
+        """The controller's module packetises whole frames from its UART."""
+        for frame in self._splitter.feed(data):
+            attempts, out = _attempts(self.air_up, frame)
+            airtime = attempts * (len(frame) + AIR_OVERHEAD_BYTES)
+            if out is None:
+                self.counters.up_lost += 1
+                continue
+            self._air_up.push(out, airtime, self.latency_s + self.air_up.delay_s())
+
+    def _arrive_host(self, data: bytes) -> None:
+        """Receive Packet from the controller's module onto the host UART."""
+        self.counters.rx_packets += 1
+        self._to_uart(ReceivePacket(self.controller_addr64, data).frame_data())
+
+    def _to_uart(self, frame_data: bytes) -> None:
+        """Frame data → API frame → paced UART to the host."""
+        frame = encode_api_frame(frame_data, self.escaped)
+        self._uart_out.push(frame, len(frame))
+
+
+def _attempts(air: FaultInjector, data: bytes) -> tuple[int, bytes | None]:
+    """Try up to 1 + MAC_RETRIES times; a corrupted packet fails the MAC's FCS like a lost one."""
+    for attempt in range(1, MAC_RETRIES + 2):
+        out = air.transmit(data)
+        if out == data:
+            return attempt, out
+    return MAC_RETRIES + 1, None
