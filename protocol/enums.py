@@ -63,7 +63,7 @@ class Inputs(enum.IntFlag):
     LIMIT_MAX = 0x08  # upper hard limit switch closed
     HOMED = 0x10  # position is referenced to home
     ESTOP_IN = 0x20  # e-stop input asserted
-    REF_MARK = 0x40  # an absolute reference mark along the track is under its sensor
+    REF_MARK = 0x40  # the trolley passed an absolute reference mark since the previous sample
 
 
 class LogLevel(enum.IntEnum):

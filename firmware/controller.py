@@ -1,0 +1,366 @@
+"""The controller: boot, the 1 kHz tick, the state machine, safety, homing and telemetry.
+
+`Firmware.tick()` is the whole main loop of the C build, called from the tick timer: read the
+sensors, handle received frames, run the safety checks, advance homing and the step profile,
+emit telemetry, flush the TX queue. Positions are ints (encoder counts, microsteps, µm); the
+only clock is the HAL's wrapping microsecond timer.
+"""
+
+from __future__ import annotations
+
+import enum
+
+from firmware import commands
+from firmware.config import (
+    SUB_PER_STEP,
+    TICK_HZ,
+    VELOCITY_FILTER_SHIFT,
+    accel_to_msteps_per_tick,
+    counts_to_steps,
+    counts_to_um,
+    steps_to_um,
+    um_to_counts,
+    um_to_steps,
+)
+from firmware.hal import Hal
+from firmware.link import LinkCounters, ReplyCache, RxFramer, TxQueue
+from firmware.motion import Profile
+from firmware.storage import LoadResult, ParamStore
+from protocol import Fault, Inputs, ParamId, State, Stream
+from protocol.messages import EncoderSample, HeadSample, Heartbeat, RangeSample, Status
+
+_SWITCH_INPUTS = int(Inputs.HOME | Inputs.LIMIT_MIN | Inputs.LIMIT_MAX | Inputs.ESTOP_IN)
+# Plain ints for the tick's bit tests: IntFlag operators build enum objects on every call.
+_IN_ESTOP = int(Inputs.ESTOP_IN)
+_IN_LIMIT_MIN = int(Inputs.LIMIT_MIN)
+_IN_LIMIT_MAX = int(Inputs.LIMIT_MAX)
+_IN_HOME = int(Inputs.HOME)
+_IN_HOMED = int(Inputs.HOMED)
+_IN_INDEX = int(Inputs.INDEX)
+_IN_REF_MARK = int(Inputs.REF_MARK)
+# PROTOCOL.md: the controller sends HEARTBEAT after 250 ms without sending anything.
+HEARTBEAT_IDLE_TICKS = 250
+_F_FOLLOWING = int(Fault.FOLLOWING_ERROR)
+_N_STREAMS = len(Stream)
+_MOTION_STATES = (State.MOVING, State.HOMING)
+
+
+class HomingPhase(enum.Enum):
+    """Where homing is."""
+
+    SEEK = 0  # moving toward the home switch
+    INDEX = 1  # on the switch, waiting for the encoder index
+    RETURN = 2  # index latched, moving back onto it
+
+
+def _i32(x: int) -> int:
+    """Wrap to a signed 32-bit value, as the C int32_t fields do."""
+    return ((x + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+
+
+class Firmware:
+    """The controller mirror; construct it on a HAL (power-on), then call tick() at 1 kHz."""
+
+    # Controller state, initialised by _boot (the C keeps these in one static struct).
+    boot_id: int
+    state: State
+    faults: int  # Fault bits
+    homed: bool
+    ticks: int
+    now_us: int
+    enc_raw: int
+    enc_pos: int  # encoder counts from home (from reset until homed)
+    velocity: int  # filtered encoder velocity, counts/s
+    switches: int
+    index_latch: int | None  # index position this tick, extended counter coordinates
+    index_seen: bool
+    mark_seen: bool  # a reference mark edge since the last encoder sample
+    watchdog_armed: bool
+    last_rx_tick: int
+    _last_tx_tick: int  # when the controller last sent anything (heartbeat when idle)
+    homing_phase: HomingPhase
+    homing_speed: int
+    homing_origin: int
+    stream_rates: list[int]
+    stream_acc: list[int]
+    active_streams: list[int]
+
+    def __init__(self, hal: Hal) -> None:
+        self.hal = hal
+        self.counters = LinkCounters()
+        self.params = ParamStore()
+        self.rx = RxFramer(self.counters)
+        self.tx = TxQueue(self.counters)
+        self.replies = ReplyCache()
+        self.profile = Profile()
+        self.boots = 0
+        self._reboot_pending = False
+        self._boot()
+
+    # ---- public --------------------------------------------------------------------------
+
+    def tick(self) -> None:
+        """One pass of the main loop (1 ms)."""
+        if self._reboot_pending:
+            self.hal.system_reset()
+            self._boot()
+        self.now_us = self.hal.micros()
+        self.ticks += 1
+        self._read_sensors()
+        data = self.hal.link_read()
+        if data:
+            self._receive(data)
+        self._safety()
+        if self.state is State.HOMING:
+            self._homing()
+        steps = self.profile.tick()
+        self.hal.step_out(steps)
+        if self.state in _MOTION_STATES and not self.profile.moving:
+            self.state = State.READY if self.homed else State.IDLE
+        if self.active_streams:
+            self._telemetry()
+        if self.ticks - self._last_tx_tick >= HEARTBEAT_IDLE_TICKS:
+            self.tx.send(Heartbeat(self.ticks & 0xFFFF_FFFF))
+        out = self.tx.drain()
+        if out:
+            self.hal.link_write(out)
+            self._last_tx_tick = self.ticks
+
+    def request_reboot(self) -> None:
+        """Reboot at the start of the next tick (after the current replies went out)."""
+        self._reboot_pending = True
+
+    @property
+    def position_um(self) -> int:
+        """Encoder position from home, µm."""
+        return counts_to_um(self.enc_pos)
+
+    @property
+    def inputs(self) -> int:
+        """Input and position flags as reported in telemetry."""
+        return self.switches | (_IN_HOMED if self.homed else 0)
+
+    # ---- state changes used by the command handlers -----------------------------------------
+
+    def latch_fault(self, fault: Fault, halt: bool) -> None:
+        """Latch a fault; stop at once (halt) or at STOP_DECEL, and enter FAULT."""
+        self.faults |= int(fault)
+        if halt:
+            self.profile.halt()
+        else:
+            self.profile.stop(self.stop_decel)
+        if self.state is not State.ESTOP:
+            self.state = State.FAULT
+
+    def estop(self) -> None:
+        """Drive off at once and latch ESTOP."""
+        self.profile.halt()
+        self.hal.drive_enable(False)
+        self.faults |= int(Fault.ESTOP)
+        self.state = State.ESTOP
+
+    def clear_faults(self) -> None:
+        """Release the latches; the commanded position is resynchronised to the encoder."""
+        if self.faults & _F_FOLLOWING:
+            self.set_homed(False)
+        self.faults = 0
+        self.hal.drive_enable(True)
+        if not self.profile.moving:
+            self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+            self.state = State.READY if self.homed else State.IDLE
+        else:
+            self.state = State.MOVING
+
+    def set_homed(self, homed: bool) -> None:
+        """Set the homed flag and the soft-limit window that goes with it."""
+        self.homed = homed
+        self.update_bounds()
+
+    def update_bounds(self) -> None:
+        """Apply the soft limits to the profile (only once homed)."""
+        if not self.homed:
+            self.profile.set_bounds(None, None)
+            return
+        lo = um_to_steps(self.params.get(ParamId.SOFT_LIMIT_MIN_UM))
+        hi = um_to_steps(self.params.get(ParamId.SOFT_LIMIT_MAX_UM))
+        lo += steps_to_um(lo) < self.params.get(ParamId.SOFT_LIMIT_MIN_UM)
+        hi -= steps_to_um(hi) > self.params.get(ParamId.SOFT_LIMIT_MAX_UM)
+        self.profile.set_bounds(lo, hi)
+
+    def start_homing(self, speed_um_s: int) -> None:
+        """Begin homing: seek the home switch in the negative direction."""
+        self.set_homed(False)
+        self.homing_speed = speed_um_s or self.params.get(ParamId.HOME_SPEED_UM_S)
+        self.homing_origin = self.profile.steps
+        self.homing_phase = HomingPhase.INDEX if self.switches & _IN_HOME else HomingPhase.SEEK
+        self.profile.jog(-commands.speed(self.homing_speed), self.max_accel, self.stop_decel)
+        self.state = State.HOMING
+
+    @property
+    def stop_decel(self) -> int:
+        """STOP_DECEL_UM_S2 in profile units."""
+        return accel_to_msteps_per_tick(self.params.get(ParamId.STOP_DECEL_UM_S2))
+
+    @property
+    def max_accel(self) -> int:
+        """MAX_ACCEL_UM_S2 in profile units."""
+        return accel_to_msteps_per_tick(self.params.get(ParamId.MAX_ACCEL_UM_S2))
+
+    def set_stream(self, stream: int, rate_hz: int) -> None:
+        """Switch a telemetry stream on at a rate, or off with 0."""
+        self.stream_rates[stream] = rate_hz
+        self.stream_acc[stream] = 0
+        self.active_streams = [s for s in range(_N_STREAMS) if self.stream_rates[s]]
+
+    # ---- boot -----------------------------------------------------------------------------
+
+    def _boot(self) -> None:
+        """Power-on or reset: fresh state, parameters from flash, a new boot id."""
+        self._reboot_pending = False
+        self.boots += 1
+        self.boot_id = self.hal.random_u32() & 0xFFFF_FFFF
+        self.state = State.BOOT
+        self.faults = 0
+        self.homed = False
+        self.ticks = 0
+        self._last_tx_tick = 0
+        self.now_us = self.hal.micros()
+        self.rx.reset()
+        self.tx.reset()
+        self.replies.clear()
+        self.profile = Profile()
+        self.enc_raw = self.hal.encoder_read()
+        self.enc_pos = 0
+        self.velocity = 0
+        self.switches = 0
+        self.index_latch = None
+        self.index_seen = False
+        self.mark_seen = False
+        self.watchdog_armed = False
+        self.last_rx_tick = 0
+        self._frames_seen = self.counters.frames_in
+        self.homing_phase = HomingPhase.SEEK
+        self.homing_speed = 0
+        self.homing_origin = 0
+        self.stream_rates = [0] * _N_STREAMS
+        self.stream_acc = [0] * _N_STREAMS
+        self.active_streams = []
+        self.hal.encoder_index_latch()  # discard a pulse from before the reset
+        self.hal.drive_enable(True)
+        self.state = State.IDLE
+        if self.params.load(self.hal.flash_read()) is LoadResult.CORRUPT:
+            self.latch_fault(Fault.FLASH, halt=True)
+
+    # ---- the tick's parts -----------------------------------------------------------------
+
+    def _read_sensors(self) -> None:
+        """Extend the encoder counter, capture an index, read the switches, filter velocity."""
+        hal = self.hal
+        raw = hal.encoder_read()
+        delta = ((raw - self.enc_raw + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+        self.enc_raw = raw
+        self.enc_pos += delta
+        self.velocity += (delta * TICK_HZ - self.velocity) >> VELOCITY_FILTER_SHIFT
+        latch = hal.encoder_index_latch()
+        if latch is not None:
+            # Position of the index pulse in the extended counter's coordinates.
+            back = ((raw - latch + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+            self.index_latch = self.enc_pos - back
+            self.index_seen = True
+        else:
+            self.index_latch = None
+        raw_inputs = hal.inputs_read()
+        if raw_inputs & _IN_REF_MARK:
+            self.mark_seen = True
+        self.switches = raw_inputs & _SWITCH_INPUTS
+
+    def _receive(self, data: bytes) -> None:
+        """Handle every complete frame; any valid frame feeds the watchdog."""
+        for frame in self.rx.feed(data):
+            commands.handle(self, *frame)
+        if self.counters.frames_in != self._frames_seen:
+            self._frames_seen = self.counters.frames_in
+            self.watchdog_armed = True
+            self.last_rx_tick = self.ticks
+
+    def _safety(self) -> None:
+        """E-stop input, hard limits, following error and the host watchdog."""
+        sw = self.switches
+        if sw & _IN_ESTOP and self.state is not State.ESTOP:
+            self.estop()
+        vel = self.profile.vel
+        if (vel > 0 and sw & _IN_LIMIT_MAX) or (vel < 0 and sw & _IN_LIMIT_MIN):
+            self.latch_fault(Fault.HARD_LIMIT, halt=True)
+        if self.state is not State.ESTOP:
+            err4 = self.profile.steps * 5 - self.enc_pos * 4  # 4 × (steps in counts − counts)
+            limit4 = self.params.values[ParamId.FOLLOWING_ERROR_COUNTS] * 4
+            if (err4 > limit4 or -err4 > limit4) and not self.faults & _F_FOLLOWING:
+                self.latch_fault(Fault.FOLLOWING_ERROR, halt=True)
+        if self.watchdog_armed:
+            silence_ms = (self.ticks - self.last_rx_tick) * 1000 // TICK_HZ
+            if silence_ms > self.params.values[ParamId.WATCHDOG_MS]:
+                # Nothing to protect while standing still: the latch is for lost motion control.
+                self.watchdog_armed = False
+                if self.state in _MOTION_STATES:
+                    self.latch_fault(Fault.WATCHDOG, halt=False)
+
+    def _homing(self) -> None:
+        """Advance homing: switch, then index, then back onto the index."""
+        phase = self.homing_phase
+        if phase is HomingPhase.RETURN:
+            return
+        travel = abs(self.profile.steps - self.homing_origin)
+        if travel > um_to_steps(self.params.get(ParamId.HOMING_TRAVEL_UM)):
+            self.latch_fault(Fault.HOMING_FAILED, halt=False)
+            return
+        if phase is HomingPhase.SEEK:
+            if self.switches & _IN_HOME:
+                self.homing_phase = HomingPhase.INDEX
+        elif self.index_latch is not None:
+            self._latch_home(self.index_latch)
+
+    def _latch_home(self, index_pos: int) -> None:
+        """Make the index pulse's position HOME_OFFSET_UM and return onto it."""
+        offset_um = self.params.get(ParamId.HOME_OFFSET_UM)
+        self.enc_pos += um_to_counts(offset_um) - index_pos
+        self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+        self.set_homed(True)
+        self.homing_phase = HomingPhase.RETURN
+        self.profile.move_to(
+            um_to_steps(offset_um),
+            commands.speed(self.homing_speed),
+            self.max_accel,
+            self.stop_decel,
+        )
+
+    def _telemetry(self) -> None:
+        """Emit each active stream when its rate accumulator rolls over."""
+        acc = self.stream_acc
+        for s in self.active_streams:
+            acc[s] += self.stream_rates[s]
+            if acc[s] >= TICK_HZ:
+                acc[s] -= TICK_HZ
+                self._emit(s)
+
+    def _emit(self, stream: int) -> None:
+        """Queue one sample of a stream."""
+        t = self.now_us
+        if stream == Stream.ENCODER:
+            flags = self.inputs | (_IN_INDEX if self.index_seen else 0)
+            flags |= _IN_REF_MARK if self.mark_seen else 0
+            self.index_seen = self.mark_seen = False
+            msg: object = EncoderSample(
+                t, _i32(self.enc_pos), _i32(self.profile.steps), _i32(self.velocity), flags
+            )
+        elif stream == Stream.STATUS:
+            target = steps_to_um(self.profile.target_sub // SUB_PER_STEP)
+            msg = Status(
+                t, self.state, self.faults, self.inputs, _i32(self.position_um), _i32(target)
+            )
+        elif stream == Stream.RANGE:
+            dist, quality = self.hal.range_read()
+            msg = RangeSample(t, dist, quality)
+        else:
+            pan, tilt = self.hal.head_read()
+            msg = HeadSample(t, _i32(pan), _i32(tilt))
+        self.tx.send(msg)

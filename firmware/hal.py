@@ -1,0 +1,59 @@
+"""The hardware abstraction boundary: everything the firmware touches on the board.
+
+The STM32 build implements these calls with timers, GPIO, the UART/CAN driver and the flash
+controller; the simulator implements them on the plant (`hil_sim.board.SimBoard`). The
+firmware never reaches past this interface, so the same control code runs on both.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+
+class Hal(Protocol):
+    """Board services, called from the 1 kHz control tick (no call may block)."""
+
+    def step_out(self, steps: int) -> None:
+        """Issue `abs(steps)` step pulses this tick, forward if positive, evenly spaced."""
+
+    def drive_enable(self, on: bool) -> None:
+        """Energise (True) or release (False) the stepper driver."""
+
+    def encoder_read(self) -> int:
+        """Quadrature counter, 32-bit wrapping, zero at reset."""
+
+    def encoder_index_latch(self) -> int | None:
+        """Counter value captured at the last index pulse since the previous call, else None."""
+
+    def inputs_read(self) -> int:
+        """Digital inputs as `protocol.Inputs` bits: HOME, LIMIT_MIN, LIMIT_MAX, ESTOP_IN."""
+
+    def link_read(self) -> bytes:
+        """Bytes received from the host since the previous call (the RX ring's contents)."""
+
+    def link_write(self, data: bytes) -> None:
+        """Queue bytes for the host on the link's byte stream."""
+
+    def micros(self) -> int:
+        """Free-running microsecond timer, 32-bit wrapping."""
+
+    def flash_read(self) -> bytes:
+        """The parameter sector's contents (empty or all 0xFF when erased)."""
+
+    def flash_write(self, data: bytes) -> bool:
+        """Erase the parameter sector and program `data`; False if programming failed."""
+
+    def head_set(self, pan_urad: int, tilt_urad: int) -> None:
+        """Command the pan/tilt head's servo targets."""
+
+    def head_read(self) -> tuple[int, int]:
+        """Measured pan and tilt in µrad."""
+
+    def range_read(self) -> tuple[int, int]:
+        """Latest rangefinder reading: distance in µm (0 if invalid) and quality 0–255."""
+
+    def system_reset(self) -> None:
+        """Return the peripherals to their reset state (encoder counter zero, RX ring empty)."""
+
+    def random_u32(self) -> int:
+        """A word from the hardware random generator (boot ids)."""

@@ -1,0 +1,177 @@
+"""The firmware's side of the link: bounded RX framing, the TX queue and the reply cache.
+
+Unlike `protocol.FrameDecoder`, the receive path keeps the header of a frame whose id or
+payload it cannot decode, because the controller must still NAK it by seq (UNKNOWN_MESSAGE,
+BAD_PAYLOAD). Buffers are fixed-size, as in the C: a frame longer than the largest legal one
+is discarded up to its delimiter and counted, a full TX queue drops telemetry (counted) while
+replies keep a reserve of slots.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import deque
+from dataclasses import dataclass
+
+from firmware.config import (
+    MAX_FRAME_BYTES,
+    REPLY_CACHE_SIZE,
+    TX_QUEUE_FRAMES,
+    TX_REPLY_RESERVE_FRAMES,
+)
+from protocol import PROTOCOL_VERSION, encode_frame
+from protocol.cobs import CobsError
+from protocol.cobs import decode as cobs_decode
+from protocol.crc import crc16
+from protocol.schema import CRC_SIZE, HEADER_FORMAT, HEADER_SIZE
+
+_HEADER = struct.Struct(HEADER_FORMAT)
+_DELIM = b"\x00"
+_MIN_RAW = HEADER_SIZE + CRC_SIZE
+
+
+@dataclass
+class LinkCounters:
+    """Receive and transmit statistics of the controller's link."""
+
+    frames_in: int = 0
+    bad_cobs: int = 0
+    bad_crc: int = 0
+    bad_length: int = 0
+    bad_version: int = 0
+    oversize: int = 0
+    frames_out: int = 0
+    tx_dropped: int = 0
+    duplicates: int = 0
+
+
+class RxFramer:
+    """Splits the byte stream into checked frames: (seq, flags, msg_id, raw frame)."""
+
+    __slots__ = ("_buf", "_discarding", "counters")
+
+    def __init__(self, counters: LinkCounters) -> None:
+        self.counters = counters
+        self._buf = bytearray()
+        self._discarding = False
+
+    def reset(self) -> None:
+        """Forget a partial frame (reset, resync)."""
+        self._buf.clear()
+        self._discarding = False
+
+    def feed(self, data: bytes) -> list[tuple[int, int, int, bytes]]:
+        """Consume received bytes; return the frames that passed COBS, length, CRC and version."""
+        if _DELIM not in data:
+            self._append(data)
+            return []
+        parts = data.split(_DELIM)
+        out: list[tuple[int, int, int, bytes]] = []
+        for i, part in enumerate(parts):
+            self._append(part)
+            if i == len(parts) - 1:
+                break
+            if self._discarding:
+                self._discarding = False  # the delimiter ends an oversize frame
+            elif self._buf:
+                frame = self._check(bytes(self._buf))
+                if frame is not None:
+                    out.append(frame)
+            self._buf.clear()
+        return out
+
+    def _append(self, data: bytes) -> None:
+        """Add bytes to the partial frame, discarding it once it outgrows the largest frame."""
+        if self._discarding:
+            return
+        self._buf += data
+        if len(self._buf) > MAX_FRAME_BYTES - 1:
+            self.counters.oversize += 1
+            self._discarding = True
+            self._buf.clear()
+
+    def _check(self, enc: bytes) -> tuple[int, int, int, bytes] | None:
+        """One delimited frame → header and raw bytes, or None with the reason counted."""
+        c = self.counters
+        try:
+            raw = cobs_decode(enc)
+        except CobsError:
+            c.bad_cobs += 1
+            return None
+        if len(raw) < _MIN_RAW:
+            c.bad_length += 1
+            return None
+        if crc16(raw) != 0:
+            c.bad_crc += 1
+            return None
+        version, flags, seq, msg_id = _HEADER.unpack_from(raw)
+        if version != PROTOCOL_VERSION:
+            c.bad_version += 1
+            return None
+        c.frames_in += 1
+        return seq, flags, msg_id, raw[: len(raw) - CRC_SIZE]
+
+
+class TxQueue:
+    """Outgoing frames, bounded in count; each frame gets the next u16 seq of this direction."""
+
+    __slots__ = ("_frames", "counters", "seq")
+
+    def __init__(self, counters: LinkCounters) -> None:
+        self.counters = counters
+        self._frames: deque[bytes] = deque()
+        self.seq = 0
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def reset(self) -> None:
+        """Empty the queue and restart the seq (controller reset)."""
+        self._frames.clear()
+        self.seq = 0
+
+    def send(self, msg: object, reply: bool = False, flags: int = 0) -> bool:
+        """Encode and queue a message; telemetry is dropped (seq still spent) when nearly full."""
+        seq = self.seq
+        self.seq = (seq + 1) & 0xFFFF
+        room = TX_QUEUE_FRAMES - len(self._frames)
+        if room <= 0 or (not reply and room <= TX_REPLY_RESERVE_FRAMES):
+            # The spent seq leaves a gap, so the host counts the loss.
+            self.counters.tx_dropped += 1
+            return False
+        self._frames.append(encode_frame(msg, seq, flags))
+        return True
+
+    def drain(self) -> bytes:
+        """Everything queued, as one byte string for the link."""
+        frames = self._frames
+        if not frames:
+            return b""
+        self.counters.frames_out += len(frames)
+        data = b"".join(frames)
+        frames.clear()
+        return data
+
+
+class ReplyCache:
+    """The replies sent to the last few acknowledged commands, keyed by seq and content."""
+
+    __slots__ = ("_entries",)
+
+    def __init__(self) -> None:
+        self._entries: deque[tuple[int, bytes, object]] = deque(maxlen=REPLY_CACHE_SIZE)
+
+    def clear(self) -> None:
+        """Forget all replies (controller reset)."""
+        self._entries.clear()
+
+    def lookup(self, seq: int, body: bytes) -> object | None:
+        """The reply already sent for this seq and command, or None if it is new."""
+        for s, b, reply in self._entries:
+            if s == seq and b == body:
+                return reply
+        return None
+
+    def store(self, seq: int, body: bytes, reply: object) -> None:
+        """Remember the reply to a command, evicting the oldest."""
+        self._entries.append((seq, body, reply))

@@ -1,0 +1,161 @@
+"""SimBoard: the firmware HAL implemented on the simulated plant.
+
+It plays the MCU's peripherals: the step timer (steps issued this tick, read by the runner),
+the encoder timer (reset to zero by a reset, 32-bit wrapping, index capture), GPIO, the UART's
+RX ring (bounded, overruns counted) and TX, the µs timer of the drifting crystal, the flash
+sector (in memory or a file), the head's servo interface, the rangefinder and the RNG.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+
+from hil_sim.plant import MarkEvent, Plant
+from hil_sim.scenario import Scenario
+from protocol import Inputs
+
+REF_MARK = int(Inputs.REF_MARK)
+
+MASK32 = 0xFFFF_FFFF
+RX_RING_BYTES = 4096  # UART DMA ring: bytes beyond it before the firmware reads are lost
+QUALITY_BEST = 255
+
+
+class SimBoard:
+    """The firmware's `Hal` on a `Plant` (see firmware.hal.Hal for each call's contract)."""
+
+    def __init__(self, plant: Plant, scenario: Scenario, rng: random.Random) -> None:
+        self.plant = plant
+        self.sc = scenario
+        self.rng = rng
+        self.steps = 0  # steps issued in the current tick, consumed by the runner
+        self.mcu_us = scenario.clock.offset_us  # set by the runner at every tick
+        self.rx = bytearray()
+        self.rx_overruns = 0
+        self.tx = bytearray()
+        self.flash_fail = False  # fault hook: programming the sector fails
+        self._flash = b""
+        self._count_base = plant.count_abs
+        self.resets = 0
+        # The mark sensor's edge sets an interrupt flag, read (and cleared) with the inputs.
+        self._mark_flag = False
+        plant.on_mark = self._on_mark
+
+    # ---- Hal ------------------------------------------------------------------------------
+
+    def step_out(self, steps: int) -> None:
+        """Record the steps of this tick."""
+        self.steps = steps
+
+    def drive_enable(self, on: bool) -> None:
+        """Energise or release the motor."""
+        self.plant.set_drive(on)
+
+    def encoder_read(self) -> int:
+        """Shaft count since the last reset, wrapping at 32 bits."""
+        return (self.plant.count_abs - self._count_base) & MASK32
+
+    def encoder_index_latch(self) -> int | None:
+        """Count captured at the last index edge, once."""
+        edge = self.plant.index_abs
+        if edge is None:
+            return None
+        self.plant.index_abs = None
+        return (edge - self._count_base) & MASK32
+
+    def inputs_read(self) -> int:
+        """Closed switches, plus REF_MARK once after each reference mark edge."""
+        inputs = self.plant.switches()
+        if self._mark_flag:
+            self._mark_flag = False
+            inputs |= REF_MARK
+        return inputs
+
+    def _on_mark(self, event: MarkEvent) -> None:
+        """The plant reports a mark crossing: latch it for the firmware."""
+        self._mark_flag = True
+
+    def link_read(self) -> bytes:
+        """Drain the RX ring."""
+        if not self.rx:
+            return b""
+        data = bytes(self.rx)
+        self.rx.clear()
+        return data
+
+    def link_write(self, data: bytes) -> None:
+        """Bytes for the host."""
+        self.tx += data
+
+    def micros(self) -> int:
+        """The MCU µs counter."""
+        return self.mcu_us & MASK32
+
+    def flash_read(self) -> bytes:
+        """The parameter sector."""
+        path = self.sc.flash_path
+        if path is None:
+            return self._flash
+        if not os.path.exists(path):
+            return b""
+        with open(path, "rb") as f:
+            return f.read()
+
+    def flash_write(self, data: bytes) -> bool:
+        """Program the sector (False when the fault hook says it fails)."""
+        if self.flash_fail:
+            return False
+        if self.sc.flash_path is None:
+            self._flash = bytes(data)
+        else:
+            with open(self.sc.flash_path, "wb") as f:
+                f.write(data)
+        return True
+
+    def head_set(self, pan_urad: int, tilt_urad: int) -> None:
+        """Servo targets."""
+        self.plant.set_head_target(pan_urad * 1e-6, tilt_urad * 1e-6)
+
+    def head_read(self) -> tuple[int, int]:
+        """Measured head angles in µrad."""
+        pan, tilt = self.plant.head_measure()
+        return round(pan * 1e6), round(tilt * 1e6)
+
+    def range_read(self) -> tuple[int, int]:
+        """Distance in µm and a quality that falls with distance; (0, 0) without an echo."""
+        d = self.plant.range_measure()
+        if d is None:
+            return 0, 0
+        quality = QUALITY_BEST - int(200 * d / self.sc.rangefinder.max_mm)
+        return min(MASK32, round(d * 1000)), max(1, quality)
+
+    def system_reset(self) -> None:
+        """Peripherals to reset state: encoder timer back to 0, RX ring emptied."""
+        self.resets += 1
+        self._count_base = self.plant.count_abs
+        self.plant.index_abs = None
+        self.rx.clear()
+        self.steps = 0
+
+    def random_u32(self) -> int:
+        """Hardware RNG (seeded, so runs repeat)."""
+        return self.rng.getrandbits(32)
+
+    # ---- the wire side (used by the runner) -----------------------------------------------
+
+    def receive_from_host(self, data: bytes) -> None:
+        """Bytes arriving on the UART; an overflowing ring loses the excess."""
+        room = RX_RING_BYTES - len(self.rx)
+        if len(data) > room:
+            self.rx_overruns += len(data) - room
+            data = data[:room]
+        self.rx += data
+
+    def take_for_host(self) -> bytes:
+        """Bytes the firmware sent since the previous call."""
+        if not self.tx:
+            return b""
+        data = bytes(self.tx)
+        self.tx.clear()
+        return data

@@ -1,0 +1,230 @@
+"""Running firmware and plant together: lockstep (deterministic, fast) or paced to wall clock.
+
+Lockstep: `Simulation.step(n)` runs n controller ticks as fast as Python goes; a test talks to
+the firmware with `send()` / `receive()` (raw link bytes) or through `hil_sim.client.FrameClient`.
+
+Real time: `RealtimeRunner(sim)` runs the same ticks in a background thread paced to the wall
+clock, and exchanges link bytes through a thread-safe `SimLinkPort`, the endpoint the link
+emulators (pty, TCP, XBee, CAN) bridge to.
+"""
+
+from __future__ import annotations
+
+import queue
+import random
+import threading
+import time
+from collections.abc import Callable
+
+from firmware.config import TICK_US
+from firmware.controller import Firmware
+from hil_sim.board import SimBoard
+from hil_sim.plant import Plant, Truth
+from hil_sim.scenario import Scenario
+from host.geometry.track import Track, runway
+from host.geometry.transforms import FloatArray
+
+FirmwareBytes = Callable[[bytes], None]
+PACE_SLEEP_S = 0.001
+MAX_CATCHUP_TICKS = 200  # after a stall, run at most this many ticks before yielding
+
+
+class Simulation:
+    """Firmware + board + plant, advanced one 1 ms controller tick at a time."""
+
+    def __init__(self, scenario: Scenario | None = None) -> None:
+        self.scenario = sc = scenario or Scenario()
+        rng = random.Random(sc.seed)
+        self.plant = Plant(sc, random.Random(rng.getrandbits(64)))
+        self.board = SimBoard(self.plant, sc, random.Random(rng.getrandbits(64)))
+        self.firmware = Firmware(self.board)
+        self.ticks = 0
+        # The tick timer runs off the MCU crystal: a fast crystal makes ticks shorter in true time.
+        self.dt_s = TICK_US * 1e-6 / (1.0 + sc.clock.drift_ppm * 1e-6)
+        self._mcu_base_us = sc.clock.offset_us
+        self._track: Track | None = None
+
+    def step(self, n_ticks: int = 1) -> None:
+        """Run n controller ticks, each followed by the plant's integration over one tick."""
+        board, tick, advance, dt = self.board, self.firmware.tick, self.plant.advance, self.dt_s
+        t = self.ticks
+        base = self._mcu_base_us
+        for _ in range(n_ticks):
+            t += 1
+            board.mcu_us = base + t * TICK_US
+            tick()
+            advance(board.steps, dt)
+        self.ticks = t
+
+    def run_for(self, seconds: float) -> None:
+        """Run for a span of MCU time."""
+        self.step(round(seconds * 1e6 / TICK_US))
+
+    def send(self, data: bytes) -> None:
+        """Bytes from the host to the firmware's UART (read at the next tick)."""
+        self.board.receive_from_host(data)
+
+    def receive(self) -> bytes:
+        """Bytes the firmware has sent since the previous call."""
+        return self.board.take_for_host()
+
+    def truth(self) -> Truth:
+        """The plant's ground truth now."""
+        return self.plant.truth()
+
+    def trolley_pose(self) -> FloatArray:
+        """True T_w_t of the trolley now, on the paper's runway (host.geometry.track)."""
+        if self._track is None:
+            self._track = runway()
+        return self._track.pose(self.plant.s_mm)
+
+    @property
+    def time_s(self) -> float:
+        """True (plant) time since power-on."""
+        return self.plant.time_s
+
+    @property
+    def mcu_time_us(self) -> int:
+        """The MCU clock now, as the firmware reads it (32-bit wrapping)."""
+        return self.board.micros()
+
+    # ---- fault hooks ----------------------------------------------------------------------
+
+    def reset_controller(self) -> None:
+        """Hardware reset of the MCU (brown-out, watchdog reset, reset button)."""
+        self.firmware.request_reboot()
+
+    def inject_tooth_skip(self, teeth: int = 1) -> None:
+        """The chain jumps teeth on the sprocket."""
+        self.plant.inject_tooth_skip(teeth)
+
+    def inject_missed_steps(self, steps: int) -> None:
+        """The motor loses steps."""
+        self.plant.inject_missed_steps(steps)
+
+    def set_elongation(self, elongation: float) -> None:
+        """Chain stretch from now on (0.005 = 0.5 %)."""
+        self.plant.set_elongation(elongation)
+
+    def press_estop(self, pressed: bool = True) -> None:
+        """The e-stop mushroom."""
+        self.plant.estop_pressed = pressed
+
+
+class SimLinkPort:
+    """Thread-safe byte-stream endpoint of the simulated controller's link.
+
+    `write_to_firmware` may be called from any thread. Bytes from the firmware go to the
+    receiver set with `set_receiver` (called on the simulator's thread: hop to your own
+    loop with `loop.call_soon_threadsafe`), or, with no receiver, into a queue read with
+    `read_from_firmware`.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._inbound = bytearray()
+        self._outbound: queue.SimpleQueue[bytes] = queue.SimpleQueue()
+        self._receiver: FirmwareBytes | None = None
+
+    def write_to_firmware(self, data: bytes) -> None:
+        """Queue bytes for the firmware's UART."""
+        with self._lock:
+            self._inbound += data
+
+    def set_receiver(self, receiver: FirmwareBytes | None) -> None:
+        """Deliver firmware bytes to this callable (None: queue them instead)."""
+        with self._lock:
+            self._receiver = receiver
+
+    def read_from_firmware(self, timeout_s: float = 0.0) -> bytes:
+        """Bytes from the firmware, waiting up to timeout_s for the first chunk; b"" if none."""
+        chunks = []
+        try:
+            chunks.append(
+                self._outbound.get(timeout=timeout_s)
+                if timeout_s > 0
+                else self._outbound.get_nowait()
+            )
+            while True:
+                chunks.append(self._outbound.get_nowait())
+        except queue.Empty:
+            pass
+        return b"".join(chunks)
+
+    def take_inbound(self) -> bytes:
+        """Simulator side: the bytes written to the firmware since the previous call."""
+        with self._lock:
+            if not self._inbound:
+                return b""
+            data = bytes(self._inbound)
+            self._inbound.clear()
+            return data
+
+    def deliver(self, data: bytes) -> None:
+        """Simulator side: hand firmware bytes to the receiver or the queue."""
+        with self._lock:
+            receiver = self._receiver
+        if receiver is not None:
+            receiver(data)
+        else:
+            self._outbound.put(data)
+
+
+class RealtimeRunner:
+    """Runs a Simulation in a background thread paced to the wall clock (`speed` × real time).
+
+    Use `with runner.lock:` to read ground truth or inject faults from another thread.
+    """
+
+    def __init__(self, sim: Simulation, speed: float = 1.0, port: SimLinkPort | None = None):
+        self.sim = sim
+        self.speed = speed
+        self.port = port or SimLinkPort()
+        self.lock = threading.Lock()
+        self.late_ticks = 0  # ticks run behind schedule (the host machine could not keep up)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        """Start the simulator thread."""
+        if self._thread is not None:
+            raise RuntimeError("runner already started")
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="hil-sim", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop and join the simulator thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def __enter__(self) -> RealtimeRunner:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def _run(self) -> None:
+        """Pace ticks: run the ticks due by now, then sleep a millisecond."""
+        sim, port = self.sim, self.port
+        t0 = time.monotonic()
+        start_tick = sim.ticks
+        tick_s = sim.dt_s / self.speed
+        while not self._stop.is_set():
+            due = start_tick + int((time.monotonic() - t0) / tick_s)
+            backlog = due - sim.ticks
+            if backlog > 1:
+                self.late_ticks += backlog - 1
+            for _ in range(min(backlog, MAX_CATCHUP_TICKS)):
+                with self.lock:
+                    data = port.take_inbound()
+                    if data:
+                        sim.send(data)
+                    sim.step(1)
+                    out = sim.receive()
+                if out:
+                    port.deliver(out)
+            time.sleep(PACE_SLEEP_S)

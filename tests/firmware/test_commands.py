@@ -1,0 +1,198 @@
+"""Command handling through real frames: handshake, NAKs, duplicates, state rules."""
+
+from __future__ import annotations
+
+import struct
+
+import pytest
+
+from firmware import config
+from hil_sim.client import FrameClient
+from protocol import SCHEMA_HASH, Flag, NakCode, ParamId, State, encode_frame
+from protocol.cobs import encode as cobs_encode
+from protocol.crc import crc16
+from protocol.messages import (
+    Ack,
+    ClearFault,
+    ClockSync,
+    ClockSyncReply,
+    Estop,
+    HeadSet,
+    Hello,
+    Home,
+    Identify,
+    Jog,
+    MoveTo,
+    Nak,
+    ParamGet,
+    ParamSet,
+    ParamValue,
+    StreamSet,
+)
+from tests.firmware.conftest import Rig
+
+
+def raw_frame(msg_id: int, payload: bytes, seq: int, flags: int = Flag.ACK_REQUESTED) -> bytes:
+    """A well-framed frame with any id and payload (the codec would refuse to build some)."""
+    raw = struct.pack("<BBHB", 1, flags, seq, msg_id) + payload
+    return cobs_encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00"
+
+
+def wait_reply(client: FrameClient, seq: int) -> object:
+    """Step until the reply to seq."""
+    return client.wait_reply(seq, max_ticks=20)
+
+
+def test_hello_answers_identify_with_the_rig_constants(rig: Rig) -> None:
+    reply = rig.client.request(Hello(1, 0xDEAD))
+    assert isinstance(reply, Identify)
+    assert reply.req_seq == 0
+    assert (reply.encoder_counts_per_rev, reply.steps_per_rev) == (4000, 3200)
+    assert (reply.sprocket_teeth, reply.chain_pitch_um) == (20, 12_700)
+    assert (reply.mcu_clock_hz, reply.max_frame, reply.rx_window) == (1_000_000, 84, 8)
+    assert reply.schema_hash == SCHEMA_HASH
+    assert reply.fw_version == config.FW_VERSION
+    assert reply.state == State.IDLE
+
+
+def test_unknown_id_with_ack_requested_is_nakked(rig: Rig) -> None:
+    rig.sim.send(raw_frame(0x7E, b"\x01\x02", seq=40))
+    reply = wait_reply(rig.client, 40)
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.UNKNOWN_MESSAGE
+
+
+def test_unknown_id_without_ack_request_is_silently_counted(rig: Rig) -> None:
+    rig.sim.send(raw_frame(0x7E, b"", seq=41, flags=Flag.NONE))
+    rig.client.run(5, heartbeat_ms=1000)
+    assert not [p for p in rig.client.received if getattr(p.message, "req_seq", None) == 41]
+    assert rig.sim.firmware.counters.frames_in >= 1
+
+
+def test_controller_to_host_id_is_not_a_command(rig: Rig) -> None:
+    frame = encode_frame(Ack(1, 1), seq=42, flags=Flag.ACK_REQUESTED)
+    rig.sim.send(frame)
+    reply = wait_reply(rig.client, 42)
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.UNKNOWN_MESSAGE
+
+
+def test_bad_payload_length_is_nakked_and_changes_nothing(rig: Rig) -> None:
+    rig.sim.send(raw_frame(0x31, struct.pack("<H", int(ParamId.WATCHDOG_MS)), seq=43))
+    reply = wait_reply(rig.client, 43)
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.BAD_PAYLOAD
+    assert rig.sim.firmware.params.get(ParamId.WATCHDOG_MS) == 500
+
+
+@pytest.mark.parametrize(
+    "msg",
+    [
+        StreamSet(9, 10),  # stream beyond the enum
+        StreamSet(0, 1001),  # rate above 1 kHz
+        Jog(3_000_000, 1000),  # velocity beyond MAX_SPEED
+        MoveTo(1000, 0, 1000),  # zero speed
+        HeadSet(4_000_000, 0),  # pan beyond half a turn
+    ],
+)
+def test_out_of_range_fields_are_nakked(rig: Rig, msg: object) -> None:
+    # The codec refuses to encode these, so build the frame from raw fields.
+    from protocol import spec_of
+
+    spec = spec_of(msg)
+    values = [getattr(msg, f.name) for f in spec.fields]
+    payload = struct.pack(spec.struct_format, *values)
+    rig.sim.send(raw_frame(spec.id, payload, seq=44))
+    reply = wait_reply(rig.client, 44)
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.OUT_OF_RANGE
+    assert rig.sim.firmware.state is State.IDLE
+    assert rig.sim.firmware.active_streams == []
+
+
+def test_param_set_out_of_range_and_unknown(rig: Rig) -> None:
+    reply = rig.client.request(ParamSet(ParamId.WATCHDOG_MS, 10))
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.OUT_OF_RANGE
+    reply = rig.client.request(ParamGet(999))
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.UNKNOWN_PARAM
+    reply = rig.client.request(ParamSet(ParamId.SOFT_LIMIT_MIN_UM, 90_000_000))
+    assert isinstance(reply, Nak), "min above max must be refused"
+    reply = rig.client.request(ParamSet(ParamId.WATCHDOG_MS, 800))
+    assert isinstance(reply, ParamValue)
+    assert reply.value == 800
+    assert rig.client.request(ParamGet(ParamId.WATCHDOG_MS)) == ParamValue(
+        reply.req_seq + 1, 1, 800
+    )
+
+
+def test_move_before_homing_is_not_homed(rig: Rig) -> None:
+    reply = rig.client.request(MoveTo(100_000, 100_000, 100_000))
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.NOT_HOMED
+    assert reply.state == State.IDLE
+
+
+def test_motion_in_estop_is_bad_state_naming_the_state(homed: Rig) -> None:
+    c = homed.client
+    assert isinstance(c.request(Estop()), Ack)
+    for msg in (MoveTo(100_000, 100_000, 100_000), Jog(10_000, 10_000), Home(0), HeadSet(0, 0)):
+        reply = c.request(msg)
+        assert isinstance(reply, Nak), msg
+        assert (reply.code, reply.state) == (NakCode.BAD_STATE, State.ESTOP)
+    reply = c.request(ClearFault())
+    assert isinstance(reply, Ack)
+    assert reply.state == State.READY  # e-stop does not lose the reference
+
+
+def test_home_while_homing_is_bad_state(rig: Rig) -> None:
+    assert isinstance(rig.client.request(Home(0)), Ack)
+    reply = rig.client.request(Home(0))
+    assert isinstance(reply, Nak)
+    assert (reply.code, reply.state) == (NakCode.BAD_STATE, State.HOMING)
+
+
+def test_move_beyond_soft_limit_is_refused(homed: Rig) -> None:
+    reply = homed.client.request(MoveTo(-1_000, 100_000, 100_000))
+    assert isinstance(reply, Nak)
+    assert reply.code == NakCode.BEYOND_LIMIT
+    assert homed.sim.firmware.state is State.READY
+
+
+def test_duplicate_is_answered_from_cache_not_executed(homed: Rig) -> None:
+    c = homed.client
+    seq = c.send(MoveTo(200_000, 200_000, 500_000))
+    first = c.wait_reply(seq)
+    c.run(3000)
+    assert homed.sim.firmware.state is State.READY
+    pos = homed.sim.firmware.position_um
+    # Retransmission of the same frame after it completed: same answer, no second motion.
+    c.send(MoveTo(200_000, 200_000, 500_000), flags=Flag.ACK_REQUESTED | Flag.RETRANSMIT, seq=seq)
+    again = c.wait_reply(seq)
+    assert again == first
+    assert homed.sim.firmware.counters.duplicates == 1
+    assert homed.sim.firmware.state is State.READY
+    # A different command reusing the seq (host restarted) is new: it executes.
+    c.send(MoveTo(100_000, 200_000, 500_000), seq=seq)
+    fresh = c.wait_reply(seq)
+    assert isinstance(fresh, Ack)
+    assert fresh.state == State.MOVING
+    assert abs(pos - 200_000) < 200
+
+
+def test_clock_sync_reply_carries_mcu_time(rig: Rig) -> None:
+    seq = rig.client.send(ClockSync(0xABCD))
+    reply = rig.client.wait_reply(seq)
+    assert isinstance(reply, ClockSyncReply)
+    assert reply.token == 0xABCD
+    assert abs(reply.mcu_time_us - rig.sim.mcu_time_us) <= 2 * config.TICK_US
+
+
+def test_garbage_bytes_are_counted_not_fatal(rig: Rig) -> None:
+    rig.sim.send(b"\x01\x02\x03\x00" + b"\x55" * 300 + b"\x00" + b"\x05abc\x00")
+    reply = rig.client.request(Hello(1, 0))
+    assert isinstance(reply, Identify)
+    cnt = rig.sim.firmware.counters
+    assert cnt.oversize == 1
+    assert cnt.bad_crc + cnt.bad_cobs + cnt.bad_length >= 2

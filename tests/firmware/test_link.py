@@ -1,0 +1,65 @@
+"""The firmware's bounded RX framer and TX queue."""
+
+from __future__ import annotations
+
+import random
+
+from firmware.config import TX_QUEUE_FRAMES, TX_REPLY_RESERVE_FRAMES
+from firmware.link import LinkCounters, RxFramer, TxQueue
+from protocol import Flag, FrameDecoder, encode_frame
+from protocol.messages import Ack, EncoderSample, Hello, MoveTo
+
+
+def frames() -> bytes:
+    """Three good frames back to back."""
+    return (
+        encode_frame(Hello(1, 2), 1, Flag.ACK_REQUESTED)
+        + encode_frame(MoveTo(5, 6, 7), 2, Flag.ACK_REQUESTED)
+        + encode_frame(Hello(1, 3), 3)
+    )
+
+
+def test_rx_framer_whole_bytewise_and_random_chunks_agree() -> None:
+    data = frames()
+    whole = RxFramer(LinkCounters()).feed(data)
+    assert [f[0] for f in whole] == [1, 2, 3]
+    bytewise = RxFramer(LinkCounters())
+    got = [f for i in range(len(data)) for f in bytewise.feed(data[i : i + 1])]
+    assert got == whole
+    rng = random.Random(3)
+    chunked = RxFramer(LinkCounters())
+    pos, got = 0, []
+    while pos < len(data):
+        n = rng.randint(1, 9)
+        got += chunked.feed(data[pos : pos + n])
+        pos += n
+    assert got == whole
+
+
+def test_rx_framer_discards_oversize_and_corrupt_frames_and_resyncs() -> None:
+    counters = LinkCounters()
+    framer = RxFramer(counters)
+    bad = bytearray(encode_frame(Hello(1, 2), 9))
+    bad[3] ^= 0x10
+    out = framer.feed(b"\x07" * 200 + b"\x00" + bytes(bad) + frames())
+    assert [f[0] for f in out] == [1, 2, 3]
+    assert counters.oversize == 1
+    assert counters.bad_crc + counters.bad_cobs == 1
+
+
+def test_tx_queue_keeps_room_for_replies_and_spends_seq_on_drops() -> None:
+    counters = LinkCounters()
+    tx = TxQueue(counters)
+    sample = EncoderSample(0, 0, 0, 0, 0)
+    for _ in range(TX_QUEUE_FRAMES):
+        tx.send(sample)
+    assert len(tx) == TX_QUEUE_FRAMES - TX_REPLY_RESERVE_FRAMES
+    for i in range(TX_REPLY_RESERVE_FRAMES + 2):
+        tx.send(Ack(i, 1), reply=True)
+    assert len(tx) == TX_QUEUE_FRAMES
+    assert counters.tx_dropped == TX_REPLY_RESERVE_FRAMES + 2
+    packets = FrameDecoder().feed(tx.drain())
+    seqs = [p.seq for p in packets]
+    assert seqs == sorted(seqs)
+    assert seqs[-1] == tx.seq - 1 - 2, "the two dropped replies spent the last seqs"
+    assert len(set(seqs)) == TX_QUEUE_FRAMES < tx.seq, "gaps let the host count losses"

@@ -1,0 +1,165 @@
+"""The runner: determinism, telemetry over real frames, clock drift, marks, real-time port."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import time
+
+import pytest
+
+from hil_sim.client import FrameClient
+from hil_sim.runner import RealtimeRunner, SimLinkPort, Simulation
+from hil_sim.scenario import ClockConfig, Scenario, TrackConfig
+from protocol import Flag, FrameDecoder, Inputs, Packet, Stream, encode_frame
+from protocol.messages import (
+    Ack,
+    EncoderSample,
+    HeadSample,
+    HeadSet,
+    Hello,
+    Home,
+    Identify,
+    Jog,
+    RangeSample,
+    Status,
+    StreamSet,
+)
+
+REALTIME_TIMEOUT_S = 5.0
+
+
+def scripted_run(seed: int) -> tuple[bytes, float]:
+    """A fixed command script; returns every byte the firmware sent and the final truth."""
+    sim = Simulation(Scenario(seed=seed))
+    c = FrameClient(sim)
+    out = bytearray()
+    for msg in (
+        Hello(1, 0),
+        StreamSet(Stream.ENCODER, 500),
+        StreamSet(Stream.HEAD, 50),
+        StreamSet(Stream.RANGE, 20),
+        HeadSet(300_000, -100_000),
+        Home(0),
+    ):
+        sim.send(encode_frame(msg, c.seq, Flag.ACK_REQUESTED))
+        c.seq += 1
+        sim.step(5)
+        out += sim.receive()
+    sim.step(3000)
+    out += sim.receive()
+    return bytes(out), sim.truth().s_mm
+
+
+def test_same_seed_same_trace_other_seed_differs() -> None:
+    a, sa = scripted_run(4)
+    b, sb = scripted_run(4)
+    c, _ = scripted_run(5)
+    assert a == b
+    assert sa == sb
+    assert a != c
+
+
+def test_encoder_stream_rate_seq_and_timestamps() -> None:
+    sim = Simulation()
+    c = FrameClient(sim)
+    assert isinstance(c.request(StreamSet(Stream.ENCODER, 500)), Ack)
+    c.received.clear()
+    c.run(1000, heartbeat_ms=1000)
+    samples = [p for p in c.received if isinstance(p.message, EncoderSample)]
+    assert len(samples) == pytest.approx(500, abs=1)
+    seqs = [p.seq for p in samples]
+    assert all(b - a >= 1 for a, b in itertools.pairwise(seqs))
+    times = [m.mcu_time_us for m in c.of_type(EncoderSample)]
+    assert {b - a for a, b in itertools.pairwise(times)} == {2000}
+
+
+def test_index_flag_and_homed_flag_in_encoder_samples() -> None:
+    sim = Simulation(Scenario(track=TrackConfig(start_s_mm=400.0)))
+    c = FrameClient(sim)
+    c.request(StreamSet(Stream.ENCODER, 1000))
+    c.request(Home(0))
+    c.run(15_000)
+    flags = [m.inputs for m in c.of_type(EncoderSample)]
+    assert any(f & Inputs.INDEX for f in flags)
+    assert any(f & Inputs.HOME for f in flags)
+    assert flags[-1] & Inputs.HOMED
+
+
+def test_head_and_range_streams_follow_the_plant() -> None:
+    sim = Simulation()
+    c = FrameClient(sim)
+    c.request(HeadSet(500_000, 200_000))
+    c.request(StreamSet(Stream.HEAD, 100))
+    c.request(StreamSet(Stream.RANGE, 50))
+    c.run(1000)
+    head = c.of_type(HeadSample)[-1]
+    assert head.pan_urad == pytest.approx(500_000, abs=200)
+    assert head.tilt_urad == pytest.approx(200_000, abs=200)
+    rng = c.of_type(RangeSample)[-1]
+    expected_um = 4_000_000 / (math.cos(0.5) * math.cos(0.2))
+    assert rng.distance_um == pytest.approx(expected_um, abs=10_000)
+    assert rng.quality > 0
+
+
+def test_status_stream_and_clock_drift() -> None:
+    sim = Simulation(Scenario(clock=ClockConfig(offset_us=4_294_000_000, drift_ppm=100.0)))
+    c = FrameClient(sim)
+    c.request(StreamSet(Stream.STATUS, 10))
+    c.run(10_000)
+    status = c.of_type(Status)
+    assert len(status) == pytest.approx(100, abs=1)
+    times = [s.mcu_time_us for s in status]
+    assert min(times) < 1_000_000 < 4_294_000_000 < max(times), "the µs counter wrapped"
+    # A fast crystal: each 1000 µs MCU tick lasts 1 ms / (1 + 100 ppm) of true time.
+    assert sim.time_s == pytest.approx(sim.ticks * 1e-3 / (1 + 100e-6), abs=1e-9)
+    assert sim.time_s < sim.ticks * 1e-3 - 0.9e-3
+
+
+def test_reference_marks_are_reported_with_the_encoder_count() -> None:
+    sim = Simulation(Scenario(track=TrackConfig(start_s_mm=300.0, reference_marks_mm=(350.0,))))
+    c = FrameClient(sim)
+    c.request(Jog(100_000, 500_000))
+    c.run(1000)
+    events = sim.plant.mark_events
+    assert len(events) == 1
+    assert events[0].mark_s_mm == 350.0
+    assert 0.4 < events[0].time_s < 0.8
+
+
+def test_realtime_runner_serves_a_port_and_stops_cleanly() -> None:
+    port = SimLinkPort()
+    got: list[bytes] = []
+    port.set_receiver(got.append)
+    runner = RealtimeRunner(Simulation(), port=port)
+    with runner:
+        port.write_to_firmware(encode_frame(Hello(1, 0), 3, Flag.ACK_REQUESTED))
+        dec = FrameDecoder()
+        deadline = time.monotonic() + REALTIME_TIMEOUT_S
+        packets: list[Packet] = []
+        while not packets and time.monotonic() < deadline:
+            time.sleep(0.01)
+            packets = dec.feed(b"".join(got))
+        with runner.lock:
+            ticks = runner.sim.ticks
+    assert packets
+    assert isinstance(packets[0].message, Identify)
+    assert ticks > 0
+    assert runner._thread is None
+
+
+def test_port_queue_mode_without_receiver() -> None:
+    port = SimLinkPort()
+    port.deliver(b"ab")
+    port.deliver(b"cd")
+    assert port.read_from_firmware() == b"abcd"
+    assert port.read_from_firmware(timeout_s=0.01) == b""
+
+
+def test_trolley_pose_follows_the_true_arc_length_on_the_runway() -> None:
+    sim = Simulation(Scenario(track=TrackConfig(start_s_mm=2500.0)))
+    T = sim.trolley_pose()
+    assert T.shape == (4, 4)
+    assert T[2, 3] == pytest.approx(4000.0)  # 4 m above the floor
+    sim.inject_tooth_skip(1)
+    assert sim.trolley_pose()[:3, 3] - T[:3, 3] == pytest.approx([12.7, 0.0, 0.0], abs=1e-6)
