@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 
 from host.control import cli_commands
+from host.demo import run as demo_run
 
 
 def _version() -> str:
@@ -23,8 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="orbitar", description=__doc__)
     parser.add_argument("--version", action="version", version=f"orbitar {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    demo = sub.add_parser("demo", help="run the paper's experiments on the built-in simulator")
-    demo.add_argument("--quick", action="store_true", help="a shorter run")
+    demo_run.add_parser(sub)
     cli_commands.add_parsers(sub)
     return parser
 
@@ -33,9 +33,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Parse arguments and run the chosen subcommand."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.command == "demo":
-        print("orbitar demo: the simulator-backed demo is not built yet; see README.md.")
-        return 0
     handler = getattr(args, "handler", None)
     if handler is not None:
         return int(handler(args))

@@ -97,12 +97,15 @@ class Rig:
 
 
 def _solve_pan_tilt(a: FloatArray, d: FloatArray) -> tuple[float, float]:
-    """Angles with Rz(pan) Ry(tilt) a = d for unit vectors a, d (closest tilt to zero)."""
-    # Rz keeps z, so tilt alone must match d_z: a_z cos t - a_x sin t = d_z.
+    """Angles with Rz(pan) Ry(tilt) a = d for unit vectors a, d (the smaller head excursion)."""
+    # Rz keeps z, so tilt alone must match d_z: a_z cos t - a_x sin t = d_z. Of the two tilts,
+    # take the one whose pair needs the smaller largest angle: least slewing, furthest from stops.
     amp = math.hypot(a[2], a[0])
     base = math.atan2(-a[0], a[2])
     spread = math.acos(max(-1.0, min(1.0, d[2] / amp)))
-    tilt = min((base + spread, base - spread), key=lambda t: abs(math.remainder(t, math.tau)))
-    v = rot_y(tilt) @ a
-    pan = math.atan2(d[1], d[0]) - math.atan2(v[1], v[0])
-    return math.remainder(pan, math.tau), math.remainder(tilt, math.tau)
+    pairs = []
+    for tilt in (base + spread, base - spread):
+        v = rot_y(tilt) @ a
+        pan = math.atan2(d[1], d[0]) - math.atan2(v[1], v[0])
+        pairs.append((math.remainder(pan, math.tau), math.remainder(tilt, math.tau)))
+    return min(pairs, key=lambda p: max(abs(p[0]), abs(p[1])))

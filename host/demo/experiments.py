@@ -1,0 +1,319 @@
+"""The paper's experiments (§5.2, §5.3) and the drift experiment, run through the daemon's code.
+
+Everything here drives the rig through `host.link.Controller` and reads camera frames through
+the frame loop, as on a real rig; the simulator's ground truth arrives only inside each frame's
+`truth` and is used only by the scoring.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from host.demo.feeds import TrackFeed
+from host.demo.scoring import Score, centre_error, probe_error, summary
+from host.demo.world import SceneTruth, SimWorld
+from host.frames.registrar import Registrar, Registration
+from host.frames.sources import Frame
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.model import Wireframe
+from host.geometry.transforms import make_T
+from host.link import Controller
+from host.registration.pose_buffer import PoseSource
+from protocol import Stream
+
+FloatArray = NDArray[np.float64]
+Progress = Callable[[str, float], None]
+
+# Telemetry each link carries with room to spare for commands: an ENCODER_SAMPLE is 26 bytes
+# on the wire, so 115200 baud (11.5 kB/s) cannot carry 500 Hz; XBee's ~35 kbit/s less still.
+STREAM_RATES_HZ = {
+    "pty": {Stream.ENCODER: 200, Stream.HEAD: 50, Stream.STATUS: 20},
+    "xbee": {Stream.ENCODER: 100, Stream.HEAD: 20, Stream.STATUS: 10},
+    "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
+}
+SETTLE_S = 0.2  # ring-down after the head reports it arrived
+HEAD_TIMEOUT_S = 10.0
+HEAD_TOLERANCE_RAD = 2e-3
+ACCEL_MM_S2 = 500.0
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What to run; `quick()` is the short variant for the test suite."""
+
+    observation_mm: tuple[float, ...] = (0.0, 300.0, 2000.0)
+    observations: int = 30
+    travel_speed_mm_s: float = 250.0
+    moving_length_mm: float = 1500.0
+    moving_speed_mm_s: float = 100.0
+    moving_samples: int = 30
+    loop_length_mm: float = 16_000.0
+    loop_speed_mm_s: float = 450.0
+    skips_at_fraction: tuple[float, ...] = (0.35, 0.7)
+    elongation: float = 0.005
+
+    @staticmethod
+    def quick() -> Plan:
+        """About a quarter of the full run."""
+        return Plan(
+            observation_mm=(0.0, 300.0),
+            observations=10,
+            travel_speed_mm_s=300.0,
+            moving_length_mm=400.0,
+            moving_speed_mm_s=200.0,
+            moving_samples=10,
+            loop_length_mm=6_000.0,
+            loop_speed_mm_s=500.0,
+            skips_at_fraction=(0.5,),
+        )
+
+
+@dataclass
+class Collector:
+    """Routes frame-loop results to whoever is listening now."""
+
+    sink: Callable[[tuple[Registration, Registration]], None] | None = None
+    latest: tuple[Registration, Registration] | None = None
+
+    def __call__(self, result: tuple[Registration, Registration]) -> None:
+        self.latest = result
+        if self.sink is not None:
+            self.sink(result)
+
+    async def gather(self, count: int, timeout_s: float) -> list[tuple[Registration, Registration]]:
+        """The next `count` results."""
+        got: list[tuple[Registration, Registration]] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def take(r: tuple[Registration, Registration]) -> None:
+            got.append(r)
+            if len(got) >= count and not done.done():
+                done.set_result(None)
+
+        self.sink = take
+        try:
+            await asyncio.wait_for(done, timeout_s)
+        finally:
+            self.sink = None
+        return got
+
+
+@dataclass
+class Bench:
+    """The host side of the demo: controller, feeds, registrars, frame results."""
+
+    ctrl: Controller
+    rig: Rig
+    camera: CameraModel
+    model: Wireframe
+    feed: TrackFeed
+    workpiece: Callable[[int], FloatArray]
+    collector: Collector = field(default_factory=Collector)
+    snapshots: list[tuple[str, Any]] = field(default_factory=list)
+
+    def registrars(self) -> tuple[Registrar, Registrar]:
+        """Encoder-only (draws the overlay) and fused (scored only)."""
+        raw = PoseSource(self.rig, self.feed.raw, self.feed.head)
+        fused = PoseSource(self.rig, self.feed.fused, self.feed.head)
+        return (
+            Registrar(raw, self.camera, self.model, self.workpiece, draw=True),
+            Registrar(fused, self.camera, self.model, self.workpiece, draw=False),
+        )
+
+    def process(self) -> Callable[[Frame], tuple[Registration, Registration]]:
+        """The frame loop's per-frame work."""
+        raw, fused = self.registrars()
+        return lambda frame: (raw(frame), fused(frame))
+
+    async def move(self, s_track_mm: float, speed_mm_s: float) -> None:
+        """Drive the trolley to a track position (controller coordinates = track − home)."""
+        motion = await self.ctrl.move_to(s_track_mm - self.feed.home_s_mm, speed_mm_s, ACCEL_MM_S2)
+        distance = abs(s_track_mm - (self.feed.last_enc_mm or s_track_mm))
+        await motion.done(timeout_s=10.0 + 2.0 * distance / speed_mm_s)
+
+    async def aim(self, s_track_mm: float, target_w: FloatArray) -> None:
+        """Point the head at a world point from a track position, and let it settle."""
+        pan, tilt = self.rig.aim(s_track_mm, target_w)
+        await self.ctrl.set_head(pan, tilt)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + HEAD_TIMEOUT_S
+        while loop.time() < deadline:
+            await asyncio.sleep(0.05)
+            _, angles = self.feed.head.window()
+            if len(angles) and np.max(np.abs(angles[-1] - (pan, tilt))) < HEAD_TOLERANCE_RAD:
+                break
+        await asyncio.sleep(SETTLE_S)
+
+
+async def start_host(bench: Bench, link: str) -> None:
+    """Streams on at what the link carries, then home."""
+    await bench.ctrl.set_streams(STREAM_RATES_HZ[link])
+    motion = await bench.ctrl.home(speed_mm_s=200.0)
+    await motion.done(timeout_s=60.0)
+
+
+def survey_home(bench: Bench, world: SimWorld) -> float:
+    """Track position of the controller's zero, as a survey at installation would give it."""
+    truth = world.with_truth(lambda sim: sim.truth())
+    position = bench.ctrl.snapshot().position_mm
+    return float(truth.s_mm - position)
+
+
+async def static_experiment(
+    bench: Bench, plan: Plan, start_s: float, progress: Progress
+) -> dict[str, Any]:
+    """§5.2: repeated observations at points along the track; centre offset in mm and px."""
+    centroid = bench.model.vertices.mean(axis=0)
+    target = (bench.workpiece(0) @ np.append(centroid, 1.0))[:3]
+    rows: dict[str, Any] = {}
+    for i, offset in enumerate(plan.observation_mm):
+        progress(f"static: observation point {offset:.0f} mm", i / len(plan.observation_mm))
+        s = start_s + offset
+        await bench.move(s, plan.travel_speed_mm_s)
+        await bench.aim(s, target)
+        results = await bench.collector.gather(plan.observations, 30.0)
+        scores = [sc for r, _ in results if (sc := centre_error(r, bench.camera, centroid))]
+        rows[f"{offset:.0f}"] = {
+            "offset_mm": summary([sc.error_mm for sc in scores]),
+            "offset_px": summary([sc.error_px for sc in scores]),
+            "frames": len(results),
+        }
+        last = results[-1][0]
+        if last.image is not None:
+            bench.snapshots.append((f"Observation point {offset:.0f} mm", last.image))
+    return rows
+
+
+async def moving_experiment(
+    bench: Bench, plan: Plan, start_s: float, robot: MovingRobot, progress: Progress
+) -> dict[str, Any]:
+    """§5.3: the workpiece moves along X, the camera follows at the same speed; R of eq. 15."""
+    centroid = bench.model.vertices.mean(axis=0)
+    await bench.move(start_s, plan.travel_speed_mm_s)
+    await bench.aim(start_s, (robot.pose(0) @ np.append(centroid, 1.0))[:3])
+    progress("moving: tracking the robot", 0.0)
+    loop = asyncio.get_running_loop()
+    robot.start(loop.time())
+    motion = await bench.ctrl.move_to(
+        start_s + plan.moving_length_mm - bench.feed.home_s_mm, plan.moving_speed_mm_s, ACCEL_MM_S2
+    )
+    collected: list[Score] = []
+
+    def take(r: tuple[Registration, Registration]) -> None:
+        sc = centre_error(r[0], bench.camera, centroid)
+        if sc is not None:
+            collected.append(sc)
+
+    bench.collector.sink = take
+    try:
+        await motion.done(timeout_s=10.0 + 2.0 * plan.moving_length_mm / plan.moving_speed_mm_s)
+    finally:
+        bench.collector.sink = None
+    robot.stop()
+    picks = np.linspace(0, len(collected) - 1, min(plan.moving_samples, len(collected)))
+    samples = [collected[round(k)] for k in picks] if collected else []
+    errors = [sc.error_mm for sc in samples]
+    rms = summary(errors)["rms"]
+    return {
+        "samples": len(samples),
+        "frames": len(collected),
+        "error_mm": summary(errors),
+        "error_px": summary([sc.error_px for sc in samples]),
+        "R_percent": 100.0 * rms / plan.moving_length_mm,
+        "length_mm": plan.moving_length_mm,
+    }
+
+
+async def drift_experiment(
+    bench: Bench, world: SimWorld, plan: Plan, progress: Progress
+) -> dict[str, Any]:
+    """Beyond the paper: a loop with a stretched chain and tooth skips, encoder-only vs fused."""
+    world.with_truth(lambda sim: sim.set_elongation(plan.elongation))
+    motion = await bench.ctrl.home(speed_mm_s=200.0)
+    await motion.done(timeout_s=60.0)
+    bench.feed.reset(survey_home(bench, world))
+    start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
+    raw_scores: list[Score] = []
+    fused_scores: list[Score] = []
+
+    def take(r: tuple[Registration, Registration]) -> None:
+        raw, fused = r
+        if isinstance(raw.truth, SceneTruth) and raw.T_w_c is not None and fused.T_w_c is not None:
+            raw_scores.append(probe_error(raw.T_w_c, raw.truth, bench.camera))
+            fused_scores.append(probe_error(fused.T_w_c, raw.truth, bench.camera))
+
+    skips = sorted(start_enc + f * plan.loop_length_mm for f in plan.skips_at_fraction)
+    bench.collector.sink = take
+    try:
+        motion = await bench.ctrl.move_to(
+            start_enc + plan.loop_length_mm - bench.feed.home_s_mm, plan.loop_speed_mm_s, 800.0
+        )
+        finished = asyncio.ensure_future(
+            motion.done(timeout_s=10.0 + 2.0 * plan.loop_length_mm / plan.loop_speed_mm_s)
+        )
+        injected = 0
+        while not finished.done():
+            await asyncio.wait({finished}, timeout=0.05)
+            progress(
+                "drift: loop with a stretched chain",
+                (bench.feed.last_enc_mm or 0.0) / (start_enc + plan.loop_length_mm),
+            )
+            if injected < len(skips) and (bench.feed.last_enc_mm or 0.0) >= skips[injected]:
+                world.with_truth(lambda sim: sim.inject_tooth_skip(1))
+                injected += 1
+        await finished
+    finally:
+        bench.collector.sink = None
+    return {
+        "elongation": plan.elongation,
+        "tooth_skips": len(plan.skips_at_fraction),
+        "marks_seen": bench.feed.marks_seen,
+        "skips_detected": bench.feed.chain.stats.skips_detected,
+        "scale_estimate": float(bench.feed.chain.x[1]),
+        "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
+        "fused_px": summary([sc.error_px for sc in fused_scores]),
+        "trace": {
+            "s_mm": [sc.s_true_mm for sc in raw_scores],
+            "encoder_only_px": [sc.error_px for sc in raw_scores],
+            "fused_px": [sc.error_px for sc in fused_scores],
+        },
+    }
+
+
+@dataclass
+class MovingRobot:
+    """The §5.3 workpiece: a robot driving along a direction at uniform speed, from a start pose."""
+
+    start_pose: FloatArray
+    direction_w: FloatArray
+    speed_mm_s: float
+    length_mm: float
+    _t0: float | None = None
+    _t_stop: float | None = None
+    _clock: Callable[[], float] = field(default=lambda: math.nan)
+
+    def start(self, t0: float) -> None:
+        """Set off now (loop time)."""
+        self._t0 = t0
+
+    def stop(self) -> None:
+        """Park the robot where it is (it stops at length_mm anyway)."""
+
+    def pose_at_ns(self, t_ns: int) -> FloatArray:
+        """T_w_p at a host monotonic time."""
+        if self._t0 is None:
+            return self.start_pose
+        travel = min(max(0.0, t_ns / 1e9 - self._t0) * self.speed_mm_s, self.length_mm)
+        return make_T(self.start_pose[:3, :3], self.start_pose[:3, 3] + travel * self.direction_w)
+
+    def pose(self, t_ns: int) -> FloatArray:
+        """Alias used before the start."""
+        return self.pose_at_ns(t_ns)

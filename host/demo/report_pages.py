@@ -1,0 +1,248 @@
+"""The demo report's content: tables beside the paper's figures, plots, snapshots, summary text."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from hil_sim.scenario import Scenario
+from host.demo.report import Report
+from host.geometry.track import runway
+
+# Table 2 of the paper: camera position → (mean, standard deviation) as printed, in mm.
+PAPER_TABLE2 = {"0": (0.5, 1.20), "300": (288.9, 1.35), "2000": (1499.5, 1.41)}
+PAPER_R_PERCENT = 0.5
+
+
+def static_rows(results: dict[str, Any]) -> list[list[str | int | float]]:
+    """Static experiment beside Table 2."""
+    rows: list[list[str | int | float]] = []
+    for point, r in results["static"].items():
+        paper = PAPER_TABLE2.get(point, (float("nan"), float("nan")))
+        rows.append(
+            [
+                f"{point} mm",
+                r["offset_mm"]["n"],
+                r["offset_mm"]["mean"],
+                r["offset_mm"]["std"],
+                r["offset_px"]["mean"],
+                r["offset_px"]["std"],
+                paper[0],
+                paper[1],
+            ]
+        )
+    return rows
+
+
+STATIC_HEADERS = [
+    "camera position",
+    "n",
+    "offset mean (mm)",
+    "offset sd (mm)",
+    "offset mean (px)",
+    "offset sd (px)",
+    "paper: mean (mm)",
+    "paper: sd",
+]
+
+
+def propagation_rows(results: dict[str, Any]) -> list[list[str | int | float]]:
+    """§5.1 σ per angle: exact first order, as printed, Monte Carlo, pixels."""
+    rows: list[list[str | int | float]] = []
+    for r in results["propagation"]["rows"]:
+        fo, pr, mc, px = (
+            r["first_order_mm"],
+            r["as_printed_mm"],
+            r["monte_carlo_mm"],
+            r["pixel_monte_carlo"],
+        )
+        rows.append([r["angle_deg"], *fo, *pr, *mc, *px])
+    return rows
+
+
+PROPAGATION_HEADERS = [
+    "α = β (°)",
+    "σX",
+    "σY",
+    "σZ",
+    "printed σX",
+    "printed σY",
+    "printed σZ",
+    "MC σX",
+    "MC σY",
+    "MC σZ",
+    "σu (px)",
+    "σv (px)",
+]
+
+
+def summary_text(results: dict[str, Any]) -> str:
+    """The lines `orbitar demo` prints."""
+    lines = ["Static workpiece (§5.2) — overlay centre offset vs paper's Table 2:"]
+    for row in static_rows(results):
+        lines.append(
+            f"  {row[0]:>8}: {row[2]:7.3f} ± {row[3]:.3f} mm  ({row[4]:.2f} ± "
+            f"{row[5]:.2f} px)   paper: {row[6]} ± {row[7]}"
+        )
+    mv = results["moving"]
+    lines.append(
+        f"Moving workpiece (§5.3): R = {mv['R_percent']:.3f} % over "
+        f"{mv['length_mm']:.0f} mm, {mv['samples']} samples   paper: {PAPER_R_PERCENT} %"
+    )
+    dr = results["drift"]
+    lines.append(
+        f"Drift ({100 * dr['elongation']:.1f} % stretch, {dr['tooth_skips']} tooth skips): "
+        f"overlay RMS at 3 m encoder-only {dr['encoder_only_px']['rms']:.2f} px, fused "
+        f"{dr['fused_px']['rms']:.2f} px ({dr['marks_seen']} marks)"
+    )
+    pr = results["propagation"]
+    row45 = pr["rows"][-1]
+    lines.append(
+        "Error propagation (§5.1) at 45°: σ = "
+        + " / ".join(f"{v:.2f}" for v in row45["first_order_mm"])
+        + " mm (Monte Carlo "
+        + " / ".join(f"{v:.2f}" for v in row45["monte_carlo_mm"])
+        + "); paper 1.51 / 1.55 / 1.13"
+    )
+    return "\n".join(lines)
+
+
+def _drift_figure(results: dict[str, Any]) -> Any:
+    """Overlay error against track position, encoder-only vs fused (cf. the paper's Fig. 11)."""
+    tr = results["drift"]["trace"]
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.plot(tr["s_mm"], tr["encoder_only_px"], label="encoder only (paper)", color="tab:red")
+    ax.plot(tr["s_mm"], tr["fused_px"], label="fused with reference marks", color="tab:green")
+    ax.set_xlabel("true track position (mm)")
+    ax.set_ylabel("overlay error at 3 m (px)")
+    ax.set_yscale("symlog", linthresh=1.0)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    return fig
+
+
+def _histogram_figure(results: dict[str, Any]) -> Any:
+    """Distribution of the drift errors."""
+    tr = results["drift"]["trace"]
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    ax.hist(tr["encoder_only_px"], bins=40, alpha=0.6, label="encoder only", color="tab:red")
+    ax.hist(tr["fused_px"], bins=40, alpha=0.6, label="fused", color="tab:green")
+    ax.set_xlabel("overlay error at 3 m (px)")
+    ax.set_ylabel("frames")
+    ax.legend()
+    return fig
+
+
+def _path_figure(sc: Scenario) -> Any:
+    """The runway from above with the home switch and the reference marks."""
+    track = runway()
+    s = np.linspace(0.0, track.length_mm, 600)
+    p = track.position(s)
+    fig, ax = plt.subplots(figsize=(7, 4))
+    ax.plot(p[:, 0], p[:, 1], color="tab:blue", label="track")
+    marks = np.asarray(sc.track.reference_marks_mm)
+    if marks.size:
+        m = track.position(marks)
+        ax.scatter(m[:, 0], m[:, 1], marker="|", s=200, color="k", label="reference marks")
+    h = track.position(np.array([sc.track.home_s_mm]))
+    ax.scatter(h[:, 0], h[:, 1], color="tab:orange", label="home switch")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.legend(loc="center")
+    return fig
+
+
+def write_report(
+    out_dir: Path, results: dict[str, Any], snapshots: list[tuple[str, Any]], sc: Scenario
+) -> Path:
+    """Build and write the report; return the page's path."""
+    rep = Report("Orbitar demo: kinematic registration on the simulated rig")
+    rep.add_text("Summary", summary_text(results))
+    rep.add_table(
+        "Static workpiece (§5.2) beside the paper's Table 2", STATIC_HEADERS, static_rows(results)
+    )
+    rep.add_text("How to read it", STATIC_NOTE)
+    mv = results["moving"]
+    rep.add_table(
+        "Moving workpiece (§5.3, eq. 15)",
+        ["length (mm)", "samples", "RMS offset (mm)", "RMS offset (px)", "R (%)", "paper R (%)"],
+        [
+            [
+                mv["length_mm"],
+                mv["samples"],
+                mv["error_mm"]["rms"],
+                mv["error_px"]["rms"],
+                mv["R_percent"],
+                PAPER_R_PERCENT,
+            ]
+        ],
+    )
+    rep.add_table(
+        "Error propagation (§5.1): σ in mm, inputs fitted to the paper at 0°",
+        PROPAGATION_HEADERS,
+        propagation_rows(results),
+    )
+    rep.add_text("About the paper's figures", PROPAGATION_NOTE.format(**_prop_fmt(results)))
+    dr = results["drift"]
+    rep.add_table(
+        "Drift correction over a loop",
+        ["", "RMS (px)", "max (px)", "mean (px)"],
+        [
+            [
+                "encoder only",
+                dr["encoder_only_px"]["rms"],
+                dr["encoder_only_px"]["max"],
+                dr["encoder_only_px"]["mean"],
+            ],
+            ["fused", dr["fused_px"]["rms"], dr["fused_px"]["max"], dr["fused_px"]["mean"]],
+        ],
+    )
+    rep.add_figure("Overlay error against track position", _drift_figure(results))
+    rep.add_figure("Error histograms", _histogram_figure(results))
+    rep.add_figure("The trolley's path", _path_figure(sc))
+    for title, image in snapshots:
+        rep.add_image(title, image, "green: the virtual model drawn by the host over the frame")
+    rep.results = results
+    return rep.write(out_dir)
+
+
+def _prop_fmt(results: dict[str, Any]) -> dict[str, str]:
+    """Numbers for the propagation note."""
+    pr = results["propagation"]
+    inp = pr["input_sigma"]
+    return {
+        "sa": f"{inp['alpha_rad'] * 1e3:.3f}",
+        "sb": f"{inp['beta_rad'] * 1e3:.3f}",
+        "st": f"{inp['t_mm']:.2f}",
+        "fit45": " / ".join(f"{v:.2f}" for v in pr["best_fit_at_45deg_mm"]),
+        "n": str(pr["samples"]),
+    }
+
+
+STATIC_NOTE = (
+    "The paper displaced the virtual image by the camera's travel and measured the distance "
+    "between the virtual and the real geometric centres with a video ruler, so its means are "
+    "the travel and its standard deviations the repeatability. Here the overlay is drawn where "
+    "the registration puts the model; the offset is the distance between the projected centre "
+    "of the virtual model and that of the real one (from the simulator's ground truth), in "
+    "pixels and in millimetres on the workpiece. Compare our offsets with the paper's standard "
+    "deviations."
+)
+
+PROPAGATION_NOTE = (
+    "The paper gives σX, σY, σZ = 1.51, 1.55, 1.13 mm at Z = 3000 mm, X = Y = 100 mm, angles up to "
+    "45°, without the input σ. Eq. 13 reproduces them exactly at α = β = 0 with σα = {sa} mrad, "
+    "σβ = {sb} mrad and σt = {st} mm; at 45° no non-negative inputs do (the best fit gives "
+    "{fit45} mm), because there σZ's coefficients exceed σX's. Eq. 12 and 13 also carry sign "
+    "slips (∂Z/∂α); the 'first order' columns use the exact derivative of eq. 11, the "
+    "'printed' columns eq. 13 as printed, and the Monte Carlo ({n} samples) agrees with the "
+    "exact one. Pixel σ: the world point re-projected through the perturbed head by the "
+    "Table 1 camera."
+)

@@ -1,0 +1,66 @@
+"""Scoring registrations against the simulator's ground truth (never used to register)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from host.demo.world import SceneTruth
+from host.frames.registrar import Registration
+from host.geometry.camera import CameraModel
+from host.geometry.transforms import invert_T, transform_points
+
+FloatArray = NDArray[np.float64]
+PROBE_DEPTH_MM = 3000.0  # overlay error is quoted for a point 3 m in front of the camera
+
+
+@dataclass(frozen=True)
+class Score:
+    """Error of one registered frame."""
+
+    s_true_mm: float
+    error_px: float
+    error_mm: float  # on the workpiece: pixels × depth / focal length
+
+
+def centre_error(reg: Registration, camera: CameraModel, centroid_p: FloatArray) -> Score | None:
+    """Offset of the overlay's projected centre from the real one (nan-free or None)."""
+    truth = reg.truth
+    if reg.centre_uv is None or not isinstance(truth, SceneTruth):
+        return None
+    T_c_p = invert_T(truth.T_w_c) @ truth.T_w_p
+    pc = transform_points(T_c_p, centroid_p[None, :])
+    uv, valid = camera.project(pc)
+    if not bool(valid[0]):
+        return None
+    px = float(np.linalg.norm(reg.centre_uv - uv[0]))
+    return Score(truth.s_mm, px, px * float(pc[0, 2]) / camera.fx)
+
+
+def probe_error(
+    T_w_c_est: FloatArray, truth: SceneTruth, camera: CameraModel, depth_mm: float = PROBE_DEPTH_MM
+) -> Score:
+    """Overlay error of a point on the true optical axis at depth_mm, seen from the estimate."""
+    on_axis_c = np.array([[0.0, 0.0, depth_mm]])
+    point_w = transform_points(truth.T_w_c, on_axis_c)
+    uv_true, _ = camera.project(on_axis_c)
+    uv_est, valid = camera.project(transform_points(invert_T(T_w_c_est), point_w))
+    px = float(np.linalg.norm(uv_est[0] - uv_true[0])) if bool(valid[0]) else math.inf
+    return Score(truth.s_mm, px, px * depth_mm / camera.fx)
+
+
+def summary(values: list[float]) -> dict[str, float]:
+    """Mean, standard deviation, RMS and maximum (nan for an empty list)."""
+    if not values:
+        return {"n": 0, "mean": math.nan, "std": math.nan, "rms": math.nan, "max": math.nan}
+    a = np.asarray(values, dtype=np.float64)
+    return {
+        "n": int(a.size),
+        "mean": float(a.mean()),
+        "std": float(a.std(ddof=1)) if a.size > 1 else 0.0,
+        "rms": float(np.sqrt(np.mean(a**2))),
+        "max": float(a.max()),
+    }

@@ -1,0 +1,164 @@
+"""The simulated rig the demo runs against: firmware mirror + plant behind a real link, a camera.
+
+This is one of the two places host code may import the simulator (the other is `orbitar sim`):
+the daemon's own code then talks to it exactly as to a real controller, over a pty (serial or
+XBee API) or a CAN bus, and reads frames from the synthetic camera. Ground truth leaves this
+module only inside `Frame.truth`, for scoring.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from hil_sim.camera import SyntheticCamera
+from hil_sim.links.can_node import VirtualCanNode
+from hil_sim.links.endpoint import SimPortEndpoint
+from hil_sim.links.pty_uart import PtyUart
+from hil_sim.links.xbee import CONTROLLER_ADDR64, XBeeModule
+from hil_sim.runner import RealtimeRunner, Simulation
+from hil_sim.scenario import Scenario
+from host.frames.sources import Frame
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.model import Wireframe
+from host.transport import Transport, create_transport
+
+FloatArray = NDArray[np.float64]
+LINKS = ("pty", "xbee", "can")
+SERIAL_BAUD = 115200
+
+
+class _Emulator(Protocol):
+    """What the demo needs of a link emulator."""
+
+    async def start(self) -> None: ...
+
+    async def stop(self) -> None: ...
+
+
+@dataclass(frozen=True)
+class SceneTruth:
+    """Ground truth of one rendered frame (scoring only)."""
+
+    T_w_c: FloatArray
+    T_w_p: FloatArray
+    s_mm: float
+    pan_rad: float
+    tilt_rad: float
+
+
+class SimWorld:
+    """Simulation in real time, its link emulator, and a camera that renders the true scene."""
+
+    def __init__(self, scenario: Scenario, link: str = "pty") -> None:
+        if link not in LINKS:
+            raise ValueError(f"link must be one of {LINKS}, got {link!r}")
+        self.link = link
+        self.sim = Simulation(scenario)
+        self.runner = RealtimeRunner(self.sim)
+        self._emulator: _Emulator | None = None
+        self._can_channel = f"orbitar-demo-{uuid.uuid4().hex[:8]}"
+        self._t0_ns = 0
+        self._true0_s = 0.0
+
+    async def start(self) -> None:
+        """Start the simulator thread and the link emulator."""
+        import asyncio
+
+        endpoint = SimPortEndpoint(self.runner.port, asyncio.get_running_loop())
+        emulator: Any
+        if self.link == "pty":
+            emulator = PtyUart(endpoint, baud=SERIAL_BAUD)
+        elif self.link == "xbee":
+            emulator = XBeeModule(endpoint, api_mode=2)
+        else:
+            emulator = VirtualCanNode(endpoint, self._can_channel)
+        await emulator.start()
+        self._emulator = emulator
+        with self.runner.lock:
+            self._true0_s = self.sim.time_s
+        self._t0_ns = time.monotonic_ns()
+        self.runner.start()
+
+    async def stop(self) -> None:
+        """Stop the emulator and the simulator thread."""
+        if self._emulator is not None:
+            await self._emulator.stop()
+            self._emulator = None
+        self.runner.stop()
+
+    def host_transport(self) -> Transport:
+        """The daemon's transport for this link, configured as on a real rig."""
+        emu = self._emulator
+        if self.link == "pty" and isinstance(emu, PtyUart):
+            return create_transport("serial", url=emu.path, baudrate=SERIAL_BAUD)
+        if self.link == "xbee" and isinstance(emu, XBeeModule):
+            return create_transport("xbee", url=emu.path, api_mode=2, dest_addr64=CONTROLLER_ADDR64)
+        return create_transport("can", interface="virtual", channel=self._can_channel)
+
+    def host_time_ns(self, true_s: float) -> int:
+        """Host monotonic time at which the plant was at true time `true_s` (real-time pacing)."""
+        return self._t0_ns + round((true_s - self._true0_s) * 1e9)
+
+    def with_truth(self, fn: Callable[[Simulation], Any]) -> Any:
+        """Run fn on the simulation under the runner's lock (faults, truth)."""
+        with self.runner.lock:
+            return fn(self.sim)
+
+
+class SimCameraSource:
+    """The synthetic camera: renders the true scene at the plant's current true time."""
+
+    def __init__(
+        self,
+        world: SimWorld,
+        rig: Rig,
+        camera: CameraModel,
+        model: Wireframe,
+        workpiece: Callable[[int], FloatArray],
+        fps: float = 30.0,
+        render: bool = True,
+        seed: int = 7,
+    ) -> None:
+        self.world = world
+        self.rig = rig
+        self.model = model
+        self.workpiece = workpiece
+        self.period_s = 1.0 / fps
+        self.render = render
+        self._cam = SyntheticCamera(camera, seed=seed)
+        self._blank = np.zeros((2, 2, 3), np.uint8)
+        self._index = 0
+        self._next = time.monotonic()
+        self._closed = threading.Event()
+
+    def read(self) -> Frame | None:
+        """Wait for the next frame time, then expose and render."""
+        self._next += self.period_s
+        delay = self._next - time.monotonic()
+        if delay > 0 and self._closed.wait(delay):
+            return None
+        if self._closed.is_set():
+            return None
+        truth = self.world.with_truth(lambda sim: sim.truth())
+        stamp = self.world.host_time_ns(truth.time_s)
+        T_w_c = self.rig.T_w_c(truth.s_wrapped_mm, truth.pan_rad, truth.tilt_rad)
+        T_w_p = self.workpiece(stamp)
+        image = self._blank
+        if self.render:
+            image = self._cam.render_scene(T_w_c, self.model, T_w_p).image
+        self._index += 1
+        scene = SceneTruth(T_w_c, T_w_p, truth.s_mm, truth.pan_rad, truth.tilt_rad)
+        return Frame(self._index, image, stamp, scene)
+
+    def close(self) -> None:
+        """Stop delivering frames."""
+        self._closed.set()
