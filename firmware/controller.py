@@ -27,7 +27,14 @@ from firmware.link import LinkCounters, ReplyCache, RxFramer, TxQueue
 from firmware.motion import Profile
 from firmware.storage import LoadResult, ParamStore
 from protocol import Fault, Inputs, ParamId, State, Stream
-from protocol.messages import EncoderSample, HeadSample, Heartbeat, RangeSample, Status
+from protocol.messages import (
+    EncoderSample,
+    HeadSample,
+    Heartbeat,
+    RangeSample,
+    RefMark,
+    Status,
+)
 
 _SWITCH_INPUTS = int(Inputs.HOME | Inputs.LIMIT_MIN | Inputs.LIMIT_MAX | Inputs.ESTOP_IN)
 # Plain ints for the tick's bit tests: IntFlag operators build enum objects on every call.
@@ -37,7 +44,6 @@ _IN_LIMIT_MAX = int(Inputs.LIMIT_MAX)
 _IN_HOME = int(Inputs.HOME)
 _IN_HOMED = int(Inputs.HOMED)
 _IN_INDEX = int(Inputs.INDEX)
-_IN_REF_MARK = int(Inputs.REF_MARK)
 # PROTOCOL.md: the controller sends HEARTBEAT after 250 ms without sending anything.
 HEARTBEAT_IDLE_TICKS = 250
 _F_FOLLOWING = int(Fault.FOLLOWING_ERROR)
@@ -74,7 +80,6 @@ class Firmware:
     switches: int
     index_latch: int | None  # index position this tick, extended counter coordinates
     index_seen: bool
-    mark_seen: bool  # a reference mark edge since the last encoder sample
     watchdog_armed: bool
     last_rx_tick: int
     _last_tx_tick: int  # when the controller last sent anything (heartbeat when idle)
@@ -235,7 +240,6 @@ class Firmware:
         self.switches = 0
         self.index_latch = None
         self.index_seen = False
-        self.mark_seen = False
         self.watchdog_armed = False
         self.last_rx_tick = 0
         self._frames_seen = self.counters.frames_in
@@ -269,10 +273,11 @@ class Firmware:
             self.index_seen = True
         else:
             self.index_latch = None
-        raw_inputs = hal.inputs_read()
-        if raw_inputs & _IN_REF_MARK:
-            self.mark_seen = True
-        self.switches = raw_inputs & _SWITCH_INPUTS
+        self.switches = hal.inputs_read() & _SWITCH_INPUTS
+        mark = hal.mark_latch()
+        if mark is not None and Stream.ENCODER in self.active_streams:
+            back = ((raw - mark + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+            self.tx.send(RefMark(self.now_us, _i32(self.enc_pos - back)))
 
     def _receive(self, data: bytes) -> None:
         """Handle every complete frame; any valid frame feeds the watchdog."""
@@ -347,8 +352,7 @@ class Firmware:
         t = self.now_us
         if stream == Stream.ENCODER:
             flags = self.inputs | (_IN_INDEX if self.index_seen else 0)
-            flags |= _IN_REF_MARK if self.mark_seen else 0
-            self.index_seen = self.mark_seen = False
+            self.index_seen = False
             msg: object = EncoderSample(
                 t, _i32(self.enc_pos), _i32(self.profile.steps), _i32(self.velocity), flags
             )

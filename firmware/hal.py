@@ -25,6 +25,12 @@ class Hal(Protocol):
     def encoder_index_latch(self) -> int | None:
         """Counter value captured at the last index pulse since the previous call, else None."""
 
+    def mark_latch(self) -> int | None:
+        """Counter value captured at the last reference-mark edge since the previous call.
+
+        On the STM32 the mark sensor drives a timer input-capture channel of the encoder timer.
+        """
+
     def inputs_read(self) -> int:
         """Digital inputs as `protocol.Inputs` bits: HOME, LIMIT_MIN, LIMIT_MAX, ESTOP_IN."""
 

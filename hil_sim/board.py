@@ -13,9 +13,6 @@ import random
 
 from hil_sim.plant import MarkEvent, Plant
 from hil_sim.scenario import Scenario
-from protocol import Inputs
-
-REF_MARK = int(Inputs.REF_MARK)
 
 MASK32 = 0xFFFF_FFFF
 RX_RING_BYTES = 4096  # UART DMA ring: bytes beyond it before the firmware reads are lost
@@ -38,8 +35,8 @@ class SimBoard:
         self._flash = b""
         self._count_base = plant.count_abs
         self.resets = 0
-        # The mark sensor's edge sets an interrupt flag, read (and cleared) with the inputs.
-        self._mark_flag = False
+        # The mark sensor's edge captures the encoder count (a timer input-capture channel).
+        self._mark_capture: int | None = None
         plant.on_mark = self._on_mark
 
     # ---- Hal ------------------------------------------------------------------------------
@@ -65,16 +62,17 @@ class SimBoard:
         return (edge - self._count_base) & MASK32
 
     def inputs_read(self) -> int:
-        """Closed switches, plus REF_MARK once after each reference mark edge."""
-        inputs = self.plant.switches()
-        if self._mark_flag:
-            self._mark_flag = False
-            inputs |= REF_MARK
-        return inputs
+        """Closed switches."""
+        return self.plant.switches()
+
+    def mark_latch(self) -> int | None:
+        """Count captured at the last reference-mark edge, once."""
+        captured, self._mark_capture = self._mark_capture, None
+        return captured
 
     def _on_mark(self, event: MarkEvent) -> None:
-        """The plant reports a mark crossing: latch it for the firmware."""
-        self._mark_flag = True
+        """The plant reports a mark crossing: capture the count as the timer would."""
+        self._mark_capture = (event.encoder_abs_count - self._count_base) & MASK32
 
     def link_read(self) -> bytes:
         """Drain the RX ring."""

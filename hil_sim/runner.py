@@ -25,7 +25,7 @@ from host.geometry.track import Track, runway
 from host.geometry.transforms import FloatArray
 
 FirmwareBytes = Callable[[bytes], None]
-PACE_SLEEP_S = 0.001
+PACE_SLEEP_S = 0.0002  # short, so ticks run within a fraction of a ms of when they are due
 MAX_CATCHUP_TICKS = 200  # after a stall, run at most this many ticks before yielding
 
 
@@ -50,10 +50,11 @@ class Simulation:
         t = self.ticks
         base = self._mcu_base_us
         for _ in range(n_ticks):
-            t += 1
+            # Tick t samples the plant as it is at true time t·dt and stamps it t·TICK_US.
             board.mcu_us = base + t * TICK_US
             tick()
             advance(board.steps, dt)
+            t += 1
         self.ticks = t
 
     def run_for(self, seconds: float) -> None:
@@ -182,14 +183,26 @@ class RealtimeRunner:
         self.port = port or SimLinkPort()
         self.lock = threading.Lock()
         self.late_ticks = 0  # ticks run behind schedule (the host machine could not keep up)
+        # (wall-clock ns, true time s) when pacing began: tick k is due at the wall time that
+        # maps to its true time, so `wall_ns_at` converts plant time to host monotonic time.
+        self.epoch: tuple[int, float] | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+
+    def wall_ns_at(self, true_s: float) -> int:
+        """Host monotonic ns at which plant time `true_s` is (or was) due."""
+        if self.epoch is None:
+            raise RuntimeError("runner not started")
+        t0_ns, true0_s = self.epoch
+        return t0_ns + round((true_s - true0_s) / self.speed * 1e9)
 
     def start(self) -> None:
         """Start the simulator thread."""
         if self._thread is not None:
             raise RuntimeError("runner already started")
         self._stop.clear()
+        with self.lock:
+            self.epoch = (time.monotonic_ns(), self.sim.time_s)
         self._thread = threading.Thread(target=self._run, name="hil-sim", daemon=True)
         self._thread.start()
 
@@ -210,7 +223,8 @@ class RealtimeRunner:
     def _run(self) -> None:
         """Pace ticks: run the ticks due by now, then sleep a millisecond."""
         sim, port = self.sim, self.port
-        t0 = time.monotonic()
+        assert self.epoch is not None  # set by start()
+        t0 = self.epoch[0] / 1e9
         start_tick = sim.ticks
         tick_s = sim.dt_s / self.speed
         while not self._stop.is_set():

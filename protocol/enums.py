@@ -63,7 +63,6 @@ class Inputs(enum.IntFlag):
     LIMIT_MAX = 0x08  # upper hard limit switch closed
     HOMED = 0x10  # position is referenced to home
     ESTOP_IN = 0x20  # e-stop input asserted
-    REF_MARK = 0x40  # the trolley passed an absolute reference mark since the previous sample
 
 
 class LogLevel(enum.IntEnum):

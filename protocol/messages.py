@@ -251,6 +251,21 @@ class HeadSample:
     tilt_urad: Annotated[int, field(I32, "µrad", "measured tilt")]
 
 
+@message(0x95, C2H)
+class RefMark:
+    """The trolley passed an absolute reference mark; the count was captured at its edge.
+
+    Sent on the ENCODER stream (when it is on) at the tick after the edge. The host knows the
+    marks' surveyed track positions and uses these to correct drift the sprocket encoder
+    cannot see (chain stretch, tooth skips).
+    """
+
+    mcu_time_us: McuTime
+    encoder_count: Annotated[
+        int, field(I32, "counts", "encoder count captured at the mark's edge, as in ENCODER_SAMPLE")
+    ]
+
+
 @message(0x94, C2H, max_text=LOG_TEXT_MAX)
 class Log:
     """Human-readable text from the firmware."""

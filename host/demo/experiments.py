@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from hil_sim.runner import Simulation
 from host.demo.feeds import TrackFeed
 from host.demo.scoring import Score, centre_error, probe_error, summary
 from host.demo.world import SceneTruth, SimWorld
@@ -260,8 +261,10 @@ async def drift_experiment(
             motion.done(timeout_s=10.0 + 2.0 * plan.loop_length_mm / plan.loop_speed_mm_s)
         )
         injected = 0
+        clock_errors_us: list[float] = []
         while not finished.done():
             await asyncio.wait({finished}, timeout=0.05)
+            clock_errors_us.append(clock_sync_error_us(bench, world))
             progress(
                 "drift: loop with a stretched chain",
                 (bench.feed.last_enc_mm or 0.0) / (start_enc + plan.loop_length_mm),
@@ -278,6 +281,7 @@ async def drift_experiment(
         "marks_seen": bench.feed.marks_seen,
         "skips_detected": bench.feed.chain.stats.skips_detected,
         "scale_estimate": float(bench.feed.chain.x[1]),
+        "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),
         "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
         "fused_px": summary([sc.error_px for sc in fused_scores]),
         "trace": {
@@ -286,6 +290,17 @@ async def drift_experiment(
             "fused_px": [sc.error_px for sc in fused_scores],
         },
     }
+
+
+def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:
+    """Host clock-sync mapping of the latest MCU tick minus when that tick truly happened."""
+
+    def latest(sim: Simulation) -> tuple[int, float]:
+        return sim.board.mcu_us & 0xFFFF_FFFF, sim.time_s - sim.dt_s
+
+    mcu_us, true_s = world.with_truth(latest)
+    estimate = bench.ctrl.session.clock.mcu_to_host_ns(mcu_us)
+    return (estimate - world.host_time_ns(true_s)) / 1000.0
 
 
 @dataclass

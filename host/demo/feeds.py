@@ -2,8 +2,9 @@
 
 Both are sample sinks of `host.link.Controller`. The encoder-only feed maps the controller's
 position (mm from home) onto the track by the surveyed home position; the fused feed also
-runs the chain filter on absolute reference marks (the REF_MARK input) and pushes the
-corrected arc length into its own buffer.
+runs the chain filter on absolute reference marks and pushes the corrected arc length into its
+own buffer. Marks arrive as REF_MARK messages carrying the encoder count captured at the
+mark's edge, so a reference is as precise as one encoder count.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ from dataclasses import dataclass, field
 
 from host.fusion.chain_filter import ChainFilter
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
-from protocol import Inputs
 
 ENCODER_CAPACITY = 8192  # 16 s at 500 Hz
 HEAD_CAPACITY = 2048
@@ -30,16 +30,10 @@ class TrackFeed:
     head: AngleBuffer = field(default_factory=lambda: AngleBuffer(2, HEAD_CAPACITY))
     last_enc_mm: float | None = None
     marks_seen: int = 0
-    _mark_on: bool = False
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
         """One encoder sample (controller mm from home) → both buffers."""
         enc = self.home_s_mm + s_mm
-        mark = bool(inputs & Inputs.REF_MARK)
-        if mark and not self._mark_on and self.last_enc_mm is not None:
-            # The mark came on between the previous sample and this one: take the midpoint.
-            self._reference(0.5 * (enc + self.last_enc_mm))
-        self._mark_on = mark
         self.last_enc_mm = enc
         self.chain.predict(enc)
         self.raw.push(t_host_ns, [enc])
@@ -52,6 +46,14 @@ class TrackFeed:
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
         """Rangefinder samples are not used by the registration loop."""
 
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """A reference mark's captured encoder position: associate it, update the filter."""
+        enc_mm = self.home_s_mm + s_mm
+        mark = self.chain.associate(enc_mm, self.marks_mm)
+        if mark is not None:
+            self.chain.reference(enc_mm, mark)
+            self.marks_seen += 1
+
     def reset(self, home_s_mm: float) -> None:
         """After (re)homing: new survey offset, fresh filter and buffers."""
         self.home_s_mm = home_s_mm
@@ -59,11 +61,3 @@ class TrackFeed:
         self.raw.clear()
         self.fused.clear()
         self.last_enc_mm = None
-        self._mark_on = False
-
-    def _reference(self, enc_mm: float) -> None:
-        """A mark edge at encoder position enc_mm: associate it and update the filter."""
-        mark = self.chain.associate(enc_mm, self.marks_mm)
-        if mark is not None:
-            self.chain.reference(enc_mm, mark)
-            self.marks_seen += 1

@@ -101,6 +101,10 @@ def summary_text(results: dict[str, Any]) -> str:
         f"overlay RMS at 3 m encoder-only {dr['encoder_only_px']['rms']:.2f} px, fused "
         f"{dr['fused_px']['rms']:.2f} px ({dr['marks_seen']} marks)"
     )
+    lines.append(
+        f"Clock sync error during the loop: median {dr['clock_sync_error_us']['mean']:.0f} µs, "
+        f"max {dr['clock_sync_error_us']['max']:.0f} µs"
+    )
     pr = results["propagation"]
     row45 = pr["rows"][-1]
     lines.append(

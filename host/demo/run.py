@@ -41,7 +41,8 @@ from host.link import Controller
 
 BAR_WIDTH = 30
 START_S_MM = 500.0  # where the trolley stands at power-on (the scenario's default)
-MARK_SPACING_MM = 2000.0
+MARK_SPACING_MM = 1000.0  # reference marks along the track (magnets under a hall sensor)
+FIRST_MARK_MM = 400.0  # just past the home switch, so the chain scale is learnt early
 WORKPIECE_W = (-300.0, -300.0, 0.0)  # the robot's base on the floor, inside the runway
 
 
@@ -85,8 +86,8 @@ class Progress:
 
 
 def scenario(seed: int) -> Scenario:
-    """The paper's rig with reference marks every 2 m for the drift correction."""
-    marks = tuple(np.arange(1000.0, 17_000.0, MARK_SPACING_MM).tolist())
+    """The paper's rig with reference marks every metre for the drift correction."""
+    marks = tuple(np.arange(FIRST_MARK_MM, 16_200.0, MARK_SPACING_MM).tolist())
     return Scenario(seed=seed, track=TrackConfig(reference_marks_mm=marks))
 
 

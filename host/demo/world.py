@@ -66,8 +66,6 @@ class SimWorld:
         self.runner = RealtimeRunner(self.sim)
         self._emulator: _Emulator | None = None
         self._can_channel = f"orbitar-demo-{uuid.uuid4().hex[:8]}"
-        self._t0_ns = 0
-        self._true0_s = 0.0
 
     async def start(self) -> None:
         """Start the simulator thread and the link emulator."""
@@ -83,9 +81,6 @@ class SimWorld:
             emulator = VirtualCanNode(endpoint, self._can_channel)
         await emulator.start()
         self._emulator = emulator
-        with self.runner.lock:
-            self._true0_s = self.sim.time_s
-        self._t0_ns = time.monotonic_ns()
         self.runner.start()
 
     async def stop(self) -> None:
@@ -106,7 +101,7 @@ class SimWorld:
 
     def host_time_ns(self, true_s: float) -> int:
         """Host monotonic time at which the plant was at true time `true_s` (real-time pacing)."""
-        return self._t0_ns + round((true_s - self._true0_s) * 1e9)
+        return self.runner.wall_ns_at(true_s)
 
     def with_truth(self, fn: Callable[[Simulation], Any]) -> Any:
         """Run fn on the simulation under the runner's lock (faults, truth)."""

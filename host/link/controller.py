@@ -36,6 +36,7 @@ from protocol.messages import (
     ParamSet,
     ParamValue,
     RangeSample,
+    RefMark,
     Status,
     Stop,
     StreamSet,
@@ -62,6 +63,9 @@ class SampleSink(Protocol):
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
         """Rangefinder sample."""
+
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """A reference mark passed; s_mm is the encoder position captured at its edge."""
 
 
 @dataclass(frozen=True)
@@ -327,10 +331,10 @@ class Controller:
             self._last_position_mm = msg.position_um / UM_PER_MM
             self._updated_ns = self._status.t_ns
             self._status_changed.set()
-        elif isinstance(msg, EncoderSample | HeadSample | RangeSample):
+        elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
             self._on_sample(msg)
 
-    def _on_sample(self, msg: EncoderSample | HeadSample | RangeSample) -> None:
+    def _on_sample(self, msg: EncoderSample | HeadSample | RangeSample | RefMark) -> None:
         """Convert to host time and units; feed the ring and the sinks."""
         clock = self.session.clock
         if not clock.ready or self.identity is None:
@@ -347,6 +351,9 @@ class Controller:
         elif isinstance(msg, HeadSample):
             for sink in self._sinks:
                 sink.on_head(t_ns, msg.pan_urad / URAD_PER_RAD, msg.tilt_urad / URAD_PER_RAD)
+        elif isinstance(msg, RefMark):
+            for sink in self._sinks:
+                sink.on_mark(t_ns, msg.encoder_count * self.identity.mm_per_count)
         else:
             for sink in self._sinks:
                 sink.on_range(t_ns, msg.distance_um / UM_PER_MM, msg.quality)

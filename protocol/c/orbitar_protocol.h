@@ -17,7 +17,7 @@
 #include <string.h>
 
 #define ORB_PROTOCOL_VERSION 1u
-#define ORB_SCHEMA_HASH UINT32_C(0x1B136A98)
+#define ORB_SCHEMA_HASH UINT32_C(0x3F552DD5)
 #define ORB_HEADER_SIZE 5u
 #define ORB_CRC_SIZE 2u
 #define ORB_MAX_WIRE_FRAME 84u /* encoded bytes plus the 0x00 delimiter */
@@ -77,8 +77,7 @@ typedef enum {
     ORB_INPUTS_LIMIT_MIN = 4,
     ORB_INPUTS_LIMIT_MAX = 8,
     ORB_INPUTS_HOMED = 16,
-    ORB_INPUTS_ESTOP_IN = 32,
-    ORB_INPUTS_REF_MARK = 64
+    ORB_INPUTS_ESTOP_IN = 32
 } orb_inputs_t;
 
 typedef enum {
@@ -864,7 +863,7 @@ static inline int orb_encoder_sample_decode(orb_encoder_sample_t *m, const uint8
 
 static inline int orb_encoder_sample_in_range(const orb_encoder_sample_t *m)
 {
-    return m->inputs <= UINT32_C(127);
+    return m->inputs <= UINT32_C(63);
 }
 
 /* ---- STATUS (0x91, controller → host): State machine, latched faults and inputs. */
@@ -906,7 +905,7 @@ static inline int orb_status_in_range(const orb_status_t *m)
 {
     return m->state <= UINT32_C(6) &&
            m->faults <= UINT32_C(127) &&
-           m->inputs <= UINT32_C(127);
+           m->inputs <= UINT32_C(63);
 }
 
 /* ---- RANGE_SAMPLE (0x92, controller → host): Rangefinder distance along its beam. */
@@ -1007,6 +1006,39 @@ static inline int orb_log_in_range(const orb_log_t *m)
            m->text_len <= ORB_LOG_TEXT_MAX;
 }
 
+/* ---- REF_MARK (0x95, controller → host): The trolley passed an absolute reference mark; the count was captured at its edge.
+
+    Sent on the ENCODER stream (when it is on) at the tick after the edge. The host knows the
+    marks' surveyed track positions and uses these to correct drift the sprocket encoder
+    cannot see (chain stretch, tooth skips). */
+#define ORB_MSG_REF_MARK 0x95u
+#define ORB_REF_MARK_SIZE 8u
+typedef struct {
+    uint32_t mcu_time_us; /**< [µs] controller clock at sampling; wraps every 2³² µs */
+    int32_t encoder_count; /**< [counts] encoder count captured at the mark's edge, as in ENCODER_SAMPLE */
+} orb_ref_mark_t;
+
+static inline size_t orb_ref_mark_encode(const orb_ref_mark_t *m, uint8_t *buf)
+{
+    orb_put_u32(buf + 0, m->mcu_time_us);
+    orb_put_i32(buf + 4, m->encoder_count);
+    return ORB_REF_MARK_SIZE;
+}
+
+static inline int orb_ref_mark_decode(orb_ref_mark_t *m, const uint8_t *buf, size_t len)
+{
+    if (len != ORB_REF_MARK_SIZE) return -1;
+    m->mcu_time_us = orb_get_u32(buf + 0);
+    m->encoder_count = orb_get_i32(buf + 4);
+    return 0;
+}
+
+static inline int orb_ref_mark_in_range(const orb_ref_mark_t *m)
+{
+    (void)m;
+    return 1;
+}
+
 /* ---- payload check by id: the frame decoder's unknown_id / bad_payload */
 #define ORB_PAYLOAD_OK 0
 #define ORB_PAYLOAD_UNKNOWN_ID (-1)
@@ -1065,6 +1097,8 @@ static inline int orb_payload_check(uint8_t msg_id, const uint8_t *payload, size
     case ORB_MSG_LOG:
         return ((len >= ORB_LOG_SIZE && len <= ORB_LOG_SIZE + ORB_LOG_TEXT_MAX &&
                 orb_utf8_valid(payload + ORB_LOG_SIZE, len - ORB_LOG_SIZE))) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
+    case ORB_MSG_REF_MARK:
+        return (len == ORB_REF_MARK_SIZE) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
     default:
         return ORB_PAYLOAD_UNKNOWN_ID;
     }

@@ -34,6 +34,9 @@ class Sink:
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
         """Unused here."""
 
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """Unused here."""
+
 
 @pytest.fixture
 async def rig() -> AsyncIterator[tuple[FakeController, Controller, list[LinkEvent]]]:

@@ -1,0 +1,83 @@
+"""Link session figures: command throughput over the in-memory transport, clock-sync accuracy.
+
+Run: python benchmarks/bench_link.py   (prints `metric: value` lines)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import random
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from host.link.clocksync import WRAP_US, ClockSync
+from host.link.session import Session, SessionConfig
+from host.transport.memory import Impairment
+from protocol.messages import ParamSet
+from tests.link.fake_controller import FakeController
+from tests.link.test_clocksync import SimLink, run_probes
+
+COMMANDS = 2000
+
+
+async def command_rate(loss: float) -> tuple[float, int]:
+    """Acknowledged commands per second, and retransmissions, at a given loss each way."""
+    fake = FakeController(rx_window=8)
+    imp = Impairment(loss=loss)
+    transport = fake.wire(tx=imp, rx=imp)
+    await transport.open()
+    cfg = SessionConfig(rto_initial_s=0.01, rto_min_s=0.005, max_tries=30, reply_cache_factor=2)
+    session = Session(transport, cfg)
+    session.start()
+    await session.handshake()
+    t0 = time.perf_counter()
+    await asyncio.gather(*(session.request(ParamSet(2, i)) for i in range(COMMANDS)))
+    rate = COMMANDS / (time.perf_counter() - t0)
+    await session.stop()
+    await transport.close()
+    return rate, session.stats.retransmits
+
+
+def clock_errors_us(seeds: int = 20) -> list[float]:
+    """Worst mapping error per seeded run of the XBee-like synthetic link."""
+    worst = []
+    for seed in range(seeds):
+        rng = random.Random(seed)
+        link = SimLink(rng)
+        sync = ClockSync()
+        t = run_probes(sync, link, 0, 90)
+        errs = []
+        for _ in range(200):
+            host_ns = t - rng.uniform(0, 1e9)
+            errs.append(abs(sync.mcu_to_host_ns(link.mcu_at(host_ns) % WRAP_US) - host_ns))
+        worst.append(max(errs) / 1000)
+    return worst
+
+
+def probe_cost_us() -> float:
+    """CPU time of one add_probe with a full history."""
+    rng = random.Random(1)
+    link, sync = SimLink(rng, loss=0.0), ClockSync()
+    t = run_probes(sync, link, 0, 90)
+    t0 = time.perf_counter()
+    run_probes(sync, link, t, 10)
+    return (time.perf_counter() - t0) / 100 * 1e6
+
+
+def main() -> None:
+    for loss in (0.0, 0.1):
+        rate, retx = asyncio.run(command_rate(loss))
+        print(f"link_commands_per_s_loss_{int(loss * 100)}pct: {rate:.0f}")
+        print(f"link_retransmits_loss_{int(loss * 100)}pct: {retx}")
+    worst = clock_errors_us()
+    print(f"clocksync_xbee_worst_error_us_median: {statistics.median(worst):.0f}")
+    print(f"clocksync_xbee_worst_error_us_max: {max(worst):.0f}")
+    print(f"clocksync_add_probe_us: {probe_cost_us():.0f}")
+
+
+if __name__ == "__main__":
+    main()

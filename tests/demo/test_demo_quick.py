@@ -1,0 +1,79 @@
+"""`orbitar demo --quick` end to end: bounds from the simulated physics, not from a past run."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hil_sim.scenario import Scenario
+from host.demo.experiments import Plan
+from host.demo.run import run_demo
+from host.geometry.camera import CameraModel
+
+SC = Scenario()
+CAMERA = CameraModel()
+FAR_MM = 5000.0  # no observation in the demo is farther than this from the workpiece centre
+
+
+def _static_bound_mm() -> float:
+    """Worst registration error at rest the simulated sensors allow, with a factor 2 margin."""
+    count_mm = SC.chain.pitch_mm * SC.chain.sprocket_teeth / (4 * SC.encoder.lines)
+    pitch_radius = SC.chain.pitch_mm / (2 * math.sin(math.pi / SC.chain.sprocket_teeth))
+    chordal_mm = pitch_radius * (1 - math.cos(math.pi / SC.chain.sprocket_teeth))
+    head_mm = (SC.head.resolution_rad + 3 * SC.head.noise_rad) * FAR_MM * math.sqrt(2)
+    return 2 * (count_mm + chordal_mm + head_mm)
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict[str, Any], Path]:
+    import asyncio
+
+    out = tmp_path_factory.mktemp("report")
+    return asyncio.run(run_demo("pty", quick=True, out_dir=out)), out
+
+
+def test_static_offsets_within_what_the_sensors_allow(demo: tuple[dict[str, Any], Path]) -> None:
+    results, _ = demo
+    assert set(results["static"]) == {f"{p:.0f}" for p in Plan.quick().observation_mm}
+    for row in results["static"].values():
+        assert row["offset_mm"]["n"] == Plan.quick().observations
+        assert row["offset_mm"]["max"] < _static_bound_mm()
+
+
+def test_moving_r_within_static_bound_plus_timing(demo: tuple[dict[str, Any], Path]) -> None:
+    results, _ = demo
+    plan = Plan.quick()
+    mv = results["moving"]
+    assert mv["samples"] == plan.moving_samples
+    timing_mm = plan.moving_speed_mm_s * 2e-3  # 2 ms of clock-sync and interpolation error
+    bound_percent = 100 * (_static_bound_mm() + timing_mm) / plan.moving_length_mm
+    assert mv["R_percent"] < bound_percent
+
+
+def test_fused_registration_beats_encoder_only_under_elongation(
+    demo: tuple[dict[str, Any], Path],
+) -> None:
+    results, _ = demo
+    plan = Plan.quick()
+    dr = results["drift"]
+    # Encoder-only must drift by about elongation × travel by the end of the run.
+    end_drift_px = plan.elongation * plan.loop_length_mm * CAMERA.fx / 3000.0
+    assert dr["encoder_only_px"]["max"] > 0.5 * end_drift_px
+    assert dr["marks_seen"] >= 2
+    assert dr["fused_px"]["rms"] < dr["encoder_only_px"]["rms"] / 5
+
+
+def test_report_files_exist_and_parse(demo: tuple[dict[str, Any], Path]) -> None:
+    results, out = demo
+    page = Path(results["report"])
+    assert page.exists()
+    assert page.read_text().count("data:image/png;base64,") >= 3
+    data = json.loads((out / "results.json").read_text())
+    assert data["moving"]["R_percent"] == pytest.approx(results["moving"]["R_percent"])
+    assert len(data["propagation"]["rows"]) == 4
+    for row in data["propagation"]["rows"]:
+        assert row["mc_agreement"] < 0.05
