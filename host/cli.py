@@ -6,6 +6,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
+from typing import Any
 
 from host.control import cli_commands
 from host.demo import run as demo_run
@@ -26,7 +27,15 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     demo_run.add_parser(sub)
     cli_commands.add_parsers(sub)
+    _add_sim_parser(sub)
     return parser
+
+
+def _add_sim_parser(sub: Any) -> None:
+    """`orbitar sim`: imported here, not at module import (hil_sim/cli.py defers the simulator)."""
+    from hil_sim import cli as sim_cli
+
+    sim_cli.add_parser(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

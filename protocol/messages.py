@@ -253,12 +253,11 @@ class HeadSample:
 
 @message(0x95, C2H)
 class RefMark:
-    """The trolley passed an absolute reference mark; the count was captured at its edge.
+    """The trolley passed an absolute reference mark; the count was captured at its edge."""
 
-    Sent on the ENCODER stream (when it is on) at the tick after the edge. The host knows the
-    marks' surveyed track positions and uses these to correct drift the sprocket encoder
-    cannot see (chain stretch, tooth skips).
-    """
+    # Sent with the ENCODER stream (when it is on) at the tick after the edge. The host knows
+    # the marks' surveyed track positions and corrects the drift the sprocket encoder cannot
+    # see (chain stretch, tooth skips).
 
     mcu_time_us: McuTime
     encoder_count: Annotated[

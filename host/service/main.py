@@ -13,12 +13,13 @@ from typing import Any
 from host.config import Config, ConfigError, load_config
 from host.control.api import ControllerLike, PoseSink
 from host.control.fake import FakeController, FakeFrameLoop
+from host.service import wiring
 from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory, RecordTap
 from host.service.logsetup import setup_logging
 
 log = logging.getLogger(__name__)
 
-# Tests only: run the daemon against the in-memory fake until the real link is wired in.
+# Tests only: run the daemon against the in-memory fake instead of the configured link.
 FAKE_ENV = "ORBITAR_FAKE_CONTROLLER"  # "1" works, "fail" never connects
 
 
@@ -49,10 +50,24 @@ def run(
     if controller_factory is None:
         controller_factory, frame_loop_factory = _fake_factories()
     if controller_factory is None:
-        print("orbitar daemon: no controller factory wired (host.link)", file=sys.stderr)
+        controller_factory = wiring.controller_factory
+        frame_loop_factory = wiring.frame_loop_factory
+    return asyncio.run(_serve(config, controller_factory, frame_loop_factory, args.config))
+
+
+async def _serve(
+    config: Config,
+    controller_factory: ControllerFactory,
+    frame_loop_factory: FrameLoopFactory | None,
+    config_path: str | None,
+) -> int:
+    """Build the daemon on the running loop (the link objects bind to it) and run it."""
+    try:
+        daemon = Daemon(config, controller_factory, frame_loop_factory, config_path=config_path)
+    except wiring.WiringError as exc:
+        print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
-    daemon = Daemon(config, controller_factory, frame_loop_factory, config_path=args.config)
-    return asyncio.run(daemon.run())
+    return await daemon.run()
 
 
 def _fake_factories() -> tuple[ControllerFactory | None, FrameLoopFactory | None]:

@@ -1006,11 +1006,7 @@ static inline int orb_log_in_range(const orb_log_t *m)
            m->text_len <= ORB_LOG_TEXT_MAX;
 }
 
-/* ---- REF_MARK (0x95, controller → host): The trolley passed an absolute reference mark; the count was captured at its edge.
-
-    Sent on the ENCODER stream (when it is on) at the tick after the edge. The host knows the
-    marks' surveyed track positions and uses these to correct drift the sprocket encoder
-    cannot see (chain stretch, tooth skips). */
+/* ---- REF_MARK (0x95, controller → host): The trolley passed an absolute reference mark; the count was captured at its edge. */
 #define ORB_MSG_REF_MARK 0x95u
 #define ORB_REF_MARK_SIZE 8u
 typedef struct {

@@ -88,7 +88,8 @@ async def test_encoder_samples_reach_sinks_in_mm_and_host_time(rig) -> None:  # 
     ctrl.add_sink(sink)
     await asyncio.sleep(0.35)  # a few clock-sync probes
     assert ctrl.session.clock.ready
-    now_us = int(asyncio.get_running_loop().time() * 1e6) + fake.mcu_offset_us
+    # The MCU clock is 32 bits: wrap it as the controller would (the host's uptime may exceed it).
+    now_us = (int(asyncio.get_running_loop().time() * 1e6) + fake.mcu_offset_us) & 0xFFFF_FFFF
     fake.send_encoder(now_us, 4000, 400)  # one sprocket turn: 20 teeth × 12.7 mm
     await asyncio.sleep(0.01)
     _t_ns, s_mm, v_mm_s, _ = sink.encoder[-1]

@@ -1,0 +1,484 @@
+"""The daemon's real parts: the controller link and the pose loop, built from the configuration.
+
+`controller_factory` gives the daemon a `LinkController`: `host.link.Controller` on the transport
+named by `[link]`, seen through `host.control.api.ControllerLike`. `frame_loop_factory` builds
+what turns the controller's samples into camera poses: a `PoseFeed` (encoder and head samples
+into time-indexed buffers), a `PoseSource` on the configured rig, and either a camera frame loop
+with per-frame registration or, without a camera, a fixed-rate pose publisher, so the pose
+stream, FreeD and `orbitar watch` work on a rig (or an emulator) that has no camera attached.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from host.config import Config, SegmentConfig
+from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
+from host.frames.loop import FrameLoop
+from host.frames.registrar import Registrar, Registration
+from host.frames.sources import FrameSource, VideoCaptureSource
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig, orthonormalize_T
+from host.geometry.model import Wireframe, load_model, manipulator_wireframe
+from host.geometry.track import Track, runway
+from host.geometry.transforms import FloatArray, make_T
+from host.link import Controller
+from host.link.common import LinkDown, LinkEvent, LinkState
+from host.link.reconnect import BackoffConfig
+from host.link.session import SessionConfig
+from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD
+from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
+from host.service.daemon import RecordTap
+from host.transport import Transport, TransportConfigError, create_transport
+from protocol import ParamId
+from protocol.enums import Fault, Stream
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SPEED_MM_S = 100.0  # the paper's camera speed, when a move names none
+DEFAULT_ACCEL_MM_S2 = 500.0
+# Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN).
+STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
+    "serial": {Stream.ENCODER: 200, Stream.HEAD: 50, Stream.STATUS: 20},
+    "xbee": {Stream.ENCODER: 100, Stream.HEAD: 20, Stream.STATUS: 10},
+    "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
+}
+RECONNECT_WAIT_S = 1.0  # how long connect() waits for the supervisor's own reconnection
+ENCODER_HORIZON_NS = 50_000_000  # carry the trolley forward at most 50 ms past its last sample
+HEAD_HORIZON_NS = 150_000_000  # head samples are slower and the head moves slowly
+MAX_GAP_NS = 300_000_000
+MIN_BUFFER_SAMPLES = 64
+BUILTIN_MODEL = "builtin:manipulator"
+NO_CAMERA_SOURCES = ("none", "sim")  # "sim" frames exist only inside the emulator's process
+FPS_WINDOW_S = 2.0
+
+
+class WiringError(ValueError):
+    """The configuration names something that cannot be built (a model file, a transport)."""
+
+
+# ---- the controller ------------------------------------------------------------------------
+
+
+def build_transport(config: Config) -> Transport:
+    """The transport `[link]` describes; WiringError names a bad option."""
+    link = config.link
+    try:
+        if link.kind == "serial":
+            return create_transport("serial", url=link.url, baudrate=link.baud)
+        if link.kind == "xbee":
+            return create_transport(
+                "xbee",
+                url=link.url,
+                baudrate=link.baud,
+                dest_addr64=link.xbee_address,
+                api_mode=link.xbee_api_mode,
+            )
+        return create_transport(
+            "can",
+            interface=link.can_interface,
+            channel=link.can_channel,
+            node_id=link.node_id,
+            bitrate=link.can_bitrate,
+        )
+    except TransportConfigError as exc:
+        raise WiringError(f"[link]: {exc}") from exc
+
+
+class LinkController:
+    """`ControllerLike` over `host.link.Controller`: defaults for what the socket leaves out."""
+
+    def __init__(self, controller: Controller, stream_rates_hz: Mapping[Stream, int]) -> None:
+        self.ctrl = controller
+        self.stream_rates_hz = dict(stream_rates_hz)
+        self.head_rad: tuple[float, float] | None = None
+        self._supervised = False  # after the first success the supervisor reconnects by itself
+
+    @property
+    def connected(self) -> bool:
+        """True while the session is up."""
+        return self.ctrl.link_state is LinkState.UP
+
+    async def connect(self) -> None:
+        """First time: open and handshake; later: wait briefly for the supervisor's reconnect."""
+        if self._supervised:
+            await self._wait_up(RECONNECT_WAIT_S)
+            return
+        await self.ctrl.connect()
+        self._supervised = True
+        await self.ctrl.set_streams(self.stream_rates_hz)  # remembered across reconnects
+
+    async def close(self) -> None:
+        """Stop reconnecting and close the transport."""
+        self._supervised = False
+        await self.ctrl.close()
+
+    async def home(self) -> None:
+        """Start homing at the controller's HOME_SPEED."""
+        await self.ctrl.home()
+
+    async def move_to(self, position_mm: float, speed_mm_s: float | None = None) -> None:
+        """Start an absolute move (returns once acknowledged, not at the target)."""
+        speed = speed_mm_s or DEFAULT_SPEED_MM_S
+        await self.ctrl.move_to(position_mm, speed, DEFAULT_ACCEL_MM_S2)
+
+    async def jog(self, velocity_mm_s: float) -> None:
+        """Constant velocity; 0 ramps down."""
+        await self.ctrl.jog(velocity_mm_s, DEFAULT_ACCEL_MM_S2)
+
+    async def stop(self) -> None:
+        """Controlled stop."""
+        await self.ctrl.stop()
+
+    async def estop(self) -> None:
+        """Emergency stop."""
+        await self.ctrl.estop()
+
+    async def clear_fault(self) -> None:
+        """Release a latched fault or e-stop."""
+        await self.ctrl.clear_fault()
+
+    async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
+        """Point the head."""
+        await self.ctrl.set_head(pan_rad, tilt_rad)
+
+    async def get_param(self, param: ParamId) -> int:
+        """Read a parameter."""
+        return await self.ctrl.get_param(param)
+
+    async def set_param(self, param: ParamId, value: int) -> None:
+        """Write a parameter (RAM)."""
+        await self.ctrl.set_param(param, value)
+
+    async def persist_params(self) -> None:
+        """Store the parameters in flash."""
+        await self.ctrl.persist_params()
+
+    def snapshot(self) -> Mapping[str, Any]:
+        """Plain values for the status op and `state` events (no timestamps: they always change)."""
+        snap = self.ctrl.snapshot()
+        position = snap.position_mm
+        return {
+            "link": snap.link.value,
+            "state": snap.state.name if snap.state is not None else "UNKNOWN",
+            "faults": int(snap.faults),
+            "fault_names": _flag_names(snap.faults),
+            "inputs": snap.inputs,
+            "position_mm": None if position is None else round(position, 3),
+            "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
+        }
+
+    def link_stats(self) -> Mapping[str, Any]:
+        """The session counters as plain numbers."""
+        stats = self.ctrl.session.stats
+        out: dict[str, Any] = {"state": self.ctrl.link_state.value}
+        for key, value in vars(stats).items():
+            if isinstance(value, int | float):
+                out[key] = value
+        out["drops"] = stats.drops.total()
+        out["rtt_ms"] = None if stats.rtt.srtt_s is None else round(stats.rtt.srtt_s * 1e3, 3)
+        out["unsynced_samples"] = self.ctrl.unsynced_samples
+        return out
+
+    async def _wait_up(self, timeout_s: float) -> None:
+        """Poll the supervisor's state; LinkDown if it is still not up."""
+        deadline = time.monotonic() + timeout_s
+        while not self.connected:
+            if time.monotonic() >= deadline:
+                raise LinkDown(f"link is {self.ctrl.link_state.value}, reconnecting")
+            await asyncio.sleep(0.05)
+
+
+class RecordingSink:
+    """A `SampleSink` that hands encoder and head samples to the daemon's recording tap."""
+
+    def __init__(self, tap: RecordTap, owner: LinkController) -> None:
+        self.tap = tap
+        self.owner = owner
+
+    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
+        """One encoder sample."""
+        self.tap(KIND_ENCODER, t_host_ns, {"s_mm": s_mm, "v_mm_s": velocity_mm_s, "inputs": inputs})
+
+    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
+        """One head sample (also the head angles the snapshot shows)."""
+        self.owner.head_rad = (pan_rad, tilt_rad)
+        self.tap(KIND_HEAD, t_host_ns, {"pan_rad": pan_rad, "tilt_rad": tilt_rad})
+
+    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """Rangefinder samples are not recorded by the daemon."""
+
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """A reference mark passed: an event in the recording."""
+        self.tap(KIND_EVENT, t_host_ns, {"ref_mark_mm": s_mm})
+
+
+def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
+    """The real controller on the configured link (the daemon's default factory)."""
+    session = SessionConfig(heartbeat_interval_s=config.link.heartbeat_ms / 1000.0)
+    backoff = BackoffConfig(max_s=config.link.reconnect_max_s)
+
+    def on_event(event: LinkEvent, detail: str) -> None:
+        record_tap(KIND_EVENT, time.monotonic_ns(), {"link_event": event.value, "detail": detail})
+
+    ctrl = Controller(build_transport(config), session, backoff, on_event=on_event)
+    adapter = LinkController(ctrl, STREAM_RATES_HZ[config.link.kind])
+    ctrl.add_sink(RecordingSink(record_tap, adapter))
+    log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
+    return adapter
+
+
+# ---- rig, camera, model --------------------------------------------------------------------
+
+
+def build_track(config: Config) -> Track:
+    """The runway preset, or the custom segments placed at the configured height."""
+    track = config.track
+    if track.preset == "runway":
+        return runway(track.height_mm)
+    segments = [_segment_dict(seg) for seg in track.segments]
+    try:
+        return Track.from_config(segments, make_T(np.eye(3), [0.0, 0.0, track.height_mm]))
+    except ValueError as exc:
+        raise WiringError(f"[track]: {exc}") from exc
+
+
+def _segment_dict(seg: SegmentConfig) -> dict[str, Any]:
+    """A config segment in the geometry's dict form (angles back to degrees)."""
+    if seg.kind == "straight":
+        return {"kind": "straight", "length_mm": seg.length_mm}
+    return {"kind": "arc", "radius_mm": seg.radius_mm, "angle_deg": math.degrees(seg.angle_rad)}
+
+
+def build_rig(config: Config) -> Rig:
+    """Track and M_cr from the configuration (M_cr's rotation made orthonormal)."""
+    return Rig(track=build_track(config), T_r_c=orthonormalize_T(np.array(config.head.m_cr)))
+
+
+def build_camera(config: Config) -> CameraModel:
+    """The camera intrinsics of `[camera]`."""
+    cam = config.camera
+    return CameraModel(
+        cam.fx, cam.fy, cam.skew, cam.u0, cam.v0,
+        cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, cam.width, cam.height,
+    )  # fmt: skip
+
+
+def build_model(config: Config) -> Wireframe:
+    """The workpiece wireframe: a file, or the built-in manipulator."""
+    path = config.model.path
+    if path == BUILTIN_MODEL:
+        return manipulator_wireframe()
+    try:
+        return load_model(path)
+    except (OSError, ValueError) as exc:
+        raise WiringError(f"model.path = {path!r}: {exc}") from exc
+
+
+# ---- samples → poses -----------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class PoseFeed:
+    """A `SampleSink` filling the pose buffers: arc length (home offset added) and head angles."""
+
+    encoder: SampleBuffer
+    head: AngleBuffer
+    home_s_mm: float = 0.0  # track arc length of the controller's zero
+
+    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
+        """One encoder sample."""
+        self.encoder.push(t_host_ns, [self.home_s_mm + s_mm])
+
+    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
+        """One head sample."""
+        self.head.push(t_host_ns, [pan_rad, tilt_rad])
+
+    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """Not used for the pose."""
+
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """Reference marks: drift correction is not wired into the daemon yet."""
+
+
+def build_pose_source(
+    config: Config, rates_hz: Mapping[Stream, int], exposure_latency_ms: float = 0.0
+) -> tuple[PoseSource, PoseFeed]:
+    """Buffers sized to the registration horizon at the stream rates, and the rig's pose source."""
+    horizon_s = config.registration.horizon_ms / 1000.0
+    enc_cap = max(MIN_BUFFER_SAMPLES, math.ceil(horizon_s * rates_hz.get(Stream.ENCODER, 1)))
+    head_cap = max(MIN_BUFFER_SAMPLES, math.ceil(horizon_s * rates_hz.get(Stream.HEAD, 1)))
+    feed = PoseFeed(
+        SampleBuffer(1, enc_cap, ENCODER_HORIZON_NS, MAX_GAP_NS),
+        AngleBuffer(2, head_cap, HEAD_HORIZON_NS, MAX_GAP_NS),
+    )
+    latency_ns = round(exposure_latency_ms * 1e6)
+    source = PoseSource(build_rig(config), feed.encoder, feed.head, exposure_latency_ns=latency_ns)
+    return source, feed
+
+
+class RateMeter:
+    """Events per second over a sliding window."""
+
+    def __init__(self, window_s: float = FPS_WINDOW_S) -> None:
+        self.window_ns = round(window_s * 1e9)
+        self._times: list[int] = []
+
+    def tick(self, t_ns: int) -> None:
+        """Count one event."""
+        self._times.append(t_ns)
+        cutoff = t_ns - self.window_ns
+        while self._times and self._times[0] < cutoff:
+            self._times.pop(0)
+
+    def rate(self) -> float:
+        """Recent events per second (0 until two events)."""
+        if len(self._times) < 2:
+            return 0.0
+        span_s = (self._times[-1] - self._times[0]) / 1e9
+        return (len(self._times) - 1) / span_s if span_s > 0 else 0.0
+
+
+def _flag_names(faults: Fault) -> list[str]:
+    """Names of the set fault bits."""
+    return [f.name for f in Fault if f.value and f in faults and f.name is not None]
+
+
+def pose_sample(t_ns: int, T_w_c: FloatArray, state: str, s_mm: float, index: int) -> PoseSample:
+    """A PoseSample with plain nested tuples (msgpack- and FreeD-ready)."""
+    matrix = tuple(tuple(float(x) for x in row) for row in T_w_c)
+    return PoseSample(t_ns, matrix, state, float(s_mm), index)
+
+
+# ---- the loops ---------------------------------------------------------------------------
+
+
+class PosePublisher:
+    """Without a camera: the pose at the current time, at a fixed rate, from the buffers."""
+
+    def __init__(
+        self, poses: PoseSource, controller: LinkController, sink: PoseSink, rate_hz: float
+    ) -> None:
+        self.poses = poses
+        self.controller = controller
+        self.sink = sink
+        self.period_ns = round(1e9 / rate_hz)
+        self.published = 0
+        self.stale = 0  # ticks without a usable pose (no samples yet, or the stream stalled)
+        self._meter = RateMeter()
+
+    @property
+    def fps(self) -> float:
+        """Poses published per second, recently."""
+        return self._meter.rate()
+
+    async def run(self) -> None:
+        """Publish until cancelled, on a drift-free schedule."""
+        next_ns = time.monotonic_ns()
+        while True:
+            next_ns += self.period_ns
+            now = time.monotonic_ns()
+            if next_ns < now:  # fell behind (a stalled loop): skip, do not burst
+                next_ns = now + self.period_ns
+            await asyncio.sleep((next_ns - now) / 1e9)
+            self.publish(time.monotonic_ns())
+
+    def publish(self, t_ns: int) -> bool:
+        """One pose at t_ns to the sink; False (counted) when the buffers cannot give one."""
+        pose = self.poses.pose_at(t_ns)
+        if not pose.ok or pose.T_w_c is None:
+            self.stale += 1
+            return False
+        state = str(self.controller.snapshot().get("state", "UNKNOWN"))
+        self.published += 1
+        self._meter.tick(t_ns)
+        self.sink(pose_sample(t_ns, pose.T_w_c, state, pose.s_mm, self.published))
+        return True
+
+
+class CameraPoseLoop:
+    """With a camera: the frame loop registers each frame and publishes its pose."""
+
+    def __init__(
+        self,
+        source: FrameSource,
+        registrar: Registrar,
+        controller: LinkController,
+        sink: PoseSink,
+        record_tap: RecordTap,
+    ) -> None:
+        self.source = source
+        self.controller = controller
+        self.sink = sink
+        self.record_tap = record_tap
+        self.unregistered = 0  # frames whose exposure had no usable pose
+        self.loop: FrameLoop[Registration] = FrameLoop(source, registrar, [self._publish])
+        self._meter = RateMeter()
+
+    @property
+    def fps(self) -> float:
+        """Frames registered per second, recently."""
+        return self._meter.rate()
+
+    async def run(self) -> None:
+        """Run the frame loop until cancelled or the source ends; release the camera after."""
+        try:
+            await self.loop.run()
+        finally:
+            self.loop.stop()
+            self.source.close()
+
+    def _publish(self, reg: Registration) -> None:
+        """A registered frame → recording record and (if it has a pose) a PoseSample."""
+        frame = {"index": reg.index, "exposure_ns": reg.exposure_ns, "status": reg.status.value}
+        self.record_tap(KIND_FRAME, reg.exposure_ns, frame)
+        if reg.T_w_c is None:
+            self.unregistered += 1
+            return
+        self._meter.tick(time.monotonic_ns())
+        state = str(self.controller.snapshot().get("state", "UNKNOWN"))
+        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, state, reg.s_mm, reg.index))
+
+
+def open_camera(config: Config) -> FrameSource | None:
+    """The configured camera, or None for "none"/"sim" or when it cannot be opened (logged)."""
+    cam = config.camera
+    if isinstance(cam.source, str) and cam.source.lower() in NO_CAMERA_SOURCES:
+        return None
+    try:
+        return VideoCaptureSource(cam.source, cam.width, cam.height, cam.fps)
+    except OSError as exc:
+        log.error(
+            "camera unavailable, publishing poses without frames", extra={"kv": {"error": exc}}
+        )
+        return None
+
+
+def frame_loop_factory(
+    config: Config, controller: ControllerLike, pose_sink: PoseSink, record_tap: RecordTap
+) -> FrameLoopLike:
+    """The pose loop on the controller's samples: per camera frame, or at a fixed rate."""
+    if not isinstance(controller, LinkController):
+        raise WiringError("the pose loop needs the link controller built by controller_factory")
+    model = build_model(config)  # checked even without a camera: a bad path shows at start
+    camera = open_camera(config)
+    latency_ms = config.camera.exposure_latency_ms if camera is not None else 0.0
+    poses, feed = build_pose_source(config, controller.stream_rates_hz, latency_ms)
+    controller.ctrl.add_sink(feed)
+    if camera is None:
+        return PosePublisher(poses, controller, pose_sink, config.camera.fps)
+    registrar = Registrar(poses, build_camera(config), model, _fixed_workpiece, draw=False)
+    return CameraPoseLoop(camera, registrar, controller, pose_sink, record_tap)
+
+
+def _fixed_workpiece(t_ns: int) -> FloatArray:
+    """The workpiece frame: the world origin (on the floor below the runway's centre)."""
+    return np.eye(4)
