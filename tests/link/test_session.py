@@ -174,7 +174,9 @@ async def test_gives_up_after_max_tries_with_backoff(fake: FakeController) -> No
 async def test_window_is_respected(fake: FakeController) -> None:
     fake.rx_window = 6
     fake.reply_delay_s = 0.02
-    session = await start(fake, SessionConfig(rto_initial_s=1.0))
+    # A high RTO floor: a retransmission under CI load would add a duplicate delayed reply,
+    # which the fake would count as one more command in flight.
+    session = await start(fake, SessionConfig(rto_initial_s=1.0, rto_min_s=0.5))
     await session.handshake()
     await asyncio.gather(*(session.request(Stop()) for _ in range(20)))
     await session.stop()
