@@ -60,10 +60,17 @@ _CHECKS: dict[int, tuple[tuple[str, int, int], ...]] = {
 }
 
 
+_HELLO_ID = SCHEMA.by_cls[m.Hello].id
+
+
 def handle(fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
     """Act on one checked frame and queue its reply."""
     acked = bool(flags & Flag.ACK_REQUESTED)
     body = raw[_BODY_START:]
+    if msg_id == _HELLO_ID:
+        # A (re)starting host may reuse old seqs: forget every reply before answering (PROTOCOL
+        # §6). HELLO itself is idempotent, so a retransmitted HELLO is simply answered again.
+        fw.replies.clear()
     if acked:
         cached = fw.replies.lookup(seq, body)
         if cached is not None:

@@ -96,6 +96,15 @@ def _parse_vector3(value: Any) -> tuple[float, float, float]:
     return (float(value[0]), float(value[1]), float(value[2]))
 
 
+def _parse_number(value: Any) -> float:
+    """One finite number."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ValueError(f"expected a number, got {type(value).__name__}")
+    if not math.isfinite(value):
+        raise ValueError("must be finite")
+    return float(value)
+
+
 def _parse_mode(value: Any) -> int:
     """An octal permission string such as "0660"."""
     if not isinstance(value, str) or not SOCKET_MODE_RE.match(value):
@@ -194,6 +203,26 @@ class TrackConfig:
     )
     segments: tuple[SegmentConfig, ...] = field(default_factory=runway_segments)
     height_mm: float = spec(4000.0, lo=0.0, hi=100_000.0, doc="track height above the floor")
+    home_s_mm: float = spec(
+        0.0,
+        lo=0.0,
+        hi=1e6,
+        doc="track arc length of the controller's zero (home switch), from the installation survey",
+    )
+    reference_marks_mm: tuple[float, ...] = spec(
+        (),
+        parse=_parse_number,
+        each=True,
+        doc="surveyed arc lengths of the reference marks, ascending (empty: no drift correction)",
+    )
+
+    @property
+    def length_mm(self) -> float:
+        """Total arc length of the segments."""
+        return sum(
+            s.length_mm if s.kind == "straight" else s.radius_mm * abs(s.angle_rad)
+            for s in self.segments
+        )
 
 
 @dataclass(frozen=True)
@@ -272,6 +301,19 @@ class ModelConfig:
     """The workpiece model projected into the frames."""
 
     path: str = spec("builtin:manipulator", doc='workpiece model file or "builtin:manipulator"')
+    position_mm: tuple[float, float, float] = spec(
+        (0.0, 0.0, 0.0),
+        parse=_parse_vector3,
+        doc="x, y, z of the workpiece frame's origin in the world (track) frame",
+    )
+    yaw_rad: float = spec(
+        0.0,
+        key="yaw_deg",
+        deg=True,
+        lo=-360.0,
+        hi=360.0,
+        doc="workpiece frame turned about world z by this angle (counter-clockwise from above)",
+    )
 
 
 @dataclass(frozen=True)
@@ -508,8 +550,29 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
         errors.append(f'track.segments: given with preset {track.preset!r}; use "custom"')
     for i, seg in enumerate(track.segments):
         errors += _segment_problems(i, seg)
+    errors += _track_position_problems(track)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
+    return errors
+
+
+def _track_position_problems(track: TrackConfig) -> list[str]:
+    """Home and marks lie on the track; marks strictly ascending (each one is a distinct place)."""
+    errors = []
+    length = track.length_mm
+    if track.home_s_mm > length:
+        errors.append(f"track.home_s_mm = {track.home_s_mm}: beyond the track's {length:.1f} mm")
+    marks = track.reference_marks_mm
+    for i, mark in enumerate(marks):
+        if not 0.0 <= mark <= length:
+            errors.append(
+                f"track.reference_marks_mm[{i}] = {mark}: outside the track [0, {length:.1f}] mm"
+            )
+        if i and mark <= marks[i - 1]:
+            errors.append(
+                f"track.reference_marks_mm[{i}] = {mark}: must be above the previous mark "
+                f"{marks[i - 1]} (list the marks in ascending order)"
+            )
     return errors
 
 

@@ -2,13 +2,15 @@
 
 `add_parsers(subparsers)` registers them all; each parser sets `handler`, so host/cli.py runs
 `args.handler(args)` and exits with its return value: 0 on success, 1 when the daemon is not
-running or refuses the request, 2 for a bad configuration file.
+running or refuses the request, 2 for a bad configuration file. Output goes through `emit`, so
+a reader that stops early (`orbitar status | head -1`) ends the command quietly with 0.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import io
 import json
 import math
 import os
@@ -118,13 +120,44 @@ def request(args: argparse.Namespace, op: str, **op_args: Any) -> int:
         return _fail(f"{op} refused: {exc}")
     except TimeoutError:
         return _fail(f"{op}: no reply from the daemon")
-    if getattr(args, "json", False):
-        print(json.dumps(result, indent=2, default=str))
-    elif result is not None:
-        _print_tree(result, sys.stdout)
-    else:
-        print("ok")
+    emit(_result_text(result, getattr(args, "json", False)))
     return 0
+
+
+def _result_text(result: Any, as_json: bool) -> str:
+    """A reply as the user sees it: JSON, an indented tree, or `ok`."""
+    if as_json:
+        return json.dumps(result, indent=2, default=str) + "\n"
+    if result is None:
+        return "ok\n"
+    text = io.StringIO()
+    _print_tree(result, text)
+    return text.getvalue()
+
+
+def emit(text: str, out: TextIO | None = None) -> bool:
+    """Write and flush; False, quietly, when the reader has gone (a closed pipe)."""
+    stream = sys.stdout if out is None else out
+    try:
+        stream.write(text)
+        stream.flush()
+    except BrokenPipeError:
+        silence(stream)
+        return False
+    return True
+
+
+def silence(stream: TextIO) -> None:
+    """Point a stream whose reader has gone at /dev/null, so the exit-time flush cannot fail."""
+    try:
+        fd = stream.fileno()
+    except (OSError, ValueError):  # no descriptor (io.UnsupportedOperation is both)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
 
 
 async def _one_request(path: str, op: str, op_args: dict[str, Any]) -> Any:
@@ -138,6 +171,9 @@ def run_watch(args: argparse.Namespace) -> int:
     try:
         return asyncio.run(_watch(args.socket, args.count, sys.stdout))
     except KeyboardInterrupt:
+        return 0
+    except BrokenPipeError:  # `orbitar watch | head`: the reader is done, so are we
+        silence(sys.stdout)
         return 0
     except (ConnectionError, FileNotFoundError) as exc:
         return _fail(f"daemon not running? cannot reach {args.socket}: {exc}")
@@ -184,20 +220,20 @@ def run_config_check(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"{args.path}: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.path}: ok")
+    emit(f"{args.path}: ok\n")
     return 0
 
 
 def run_config_default(args: argparse.Namespace) -> int:
     """`orbitar config default`."""
-    sys.stdout.write(default_config_text())
+    emit(default_config_text())
     return 0
 
 
 def run_systemd_unit(args: argparse.Namespace) -> int:
     """`orbitar systemd-unit [--exec PATH] [--config PATH]`."""
     executable = args.executable or "/usr/bin/orbitar"
-    sys.stdout.write(render_unit(executable, args.config))
+    emit(render_unit(executable, args.config))
     return 0
 
 

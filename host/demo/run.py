@@ -37,7 +37,8 @@ from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import manipulator_wireframe
 from host.geometry.transforms import make_T
-from host.link import Controller
+from host.link import Controller, LinkError
+from host.link.controller import MotionFailed
 
 BAR_WIDTH = 30
 START_S_MM = 500.0  # where the trolley stands at power-on (the scenario's default)
@@ -85,6 +86,22 @@ class Progress:
             sys.stderr.write("\n")
 
 
+@dataclass
+class LoopLag:
+    """How late the event loop wakes up: a stalled loop starves the link's heartbeats."""
+
+    period_s: float = 0.05
+    max_ms: float = 0.0
+
+    async def run(self) -> None:
+        """Sleep a period at a time and keep the worst overshoot."""
+        loop = asyncio.get_running_loop()
+        while True:
+            t = loop.time()
+            await asyncio.sleep(self.period_s)
+            self.max_ms = max(self.max_ms, (loop.time() - t - self.period_s) * 1e3)
+
+
 def scenario(seed: int) -> Scenario:
     """The paper's rig with reference marks every metre for the drift correction."""
     marks = tuple(np.arange(FIRST_MARK_MM, 16_200.0, MARK_SPACING_MM).tolist())
@@ -121,6 +138,8 @@ async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict
     source = SimCameraSource(world, rig, camera, model, workpiece)
     loop = FrameLoop(source, bench.process(), [bench.collector])
     frames = asyncio.create_task(loop.run())
+    lag = LoopLag()
+    lag_task = asyncio.create_task(lag.run())
     results: dict[str, Any] = {"link": link, "quick": quick, "seed": seed}
     try:
         progress("connect: handshake and homing", 0.0)
@@ -140,7 +159,9 @@ async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict
             "latency_ms_median": loop.stats.latency_ms(0.5),
             "latency_ms_p99": loop.stats.latency_ms(0.99),
         }
+        results["host_loop_lag_ms_max"] = lag.max_ms
     finally:
+        lag_task.cancel()
         loop.stop()
         source.close()
         with contextlib.suppress(Exception):
@@ -184,7 +205,11 @@ def main(args: Any) -> int:
     """Run the demo and print the summary and the report's path."""
     from host.demo.report_pages import summary_text
 
-    results = asyncio.run(run_demo(args.link, args.quick, args.out, args.seed))
+    try:
+        results = asyncio.run(run_demo(args.link, args.quick, args.out, args.seed))
+    except (LinkError, MotionFailed) as exc:
+        print(f"orbitar demo: the run stopped: {exc}", file=sys.stderr)
+        return 1
     print(summary_text(results))
     print(f"Report: {results['report']}")
     return 0

@@ -2,6 +2,7 @@
 
 from host.link.clocksync import ClockSync
 from host.link.common import (
+    BadIdentity,
     CommandTimeout,
     ControllerRejected,
     LinkDown,
@@ -17,6 +18,7 @@ from host.link.session import Session, SessionConfig
 
 __all__ = [
     "BackoffConfig",
+    "BadIdentity",
     "ClockSync",
     "CommandTimeout",
     "Controller",

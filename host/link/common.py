@@ -20,6 +20,10 @@ class CommandTimeout(LinkError):  # noqa: N818
     """A command got no reply after every retransmission."""
 
 
+class BadIdentity(LinkError):  # noqa: N818
+    """IDENTIFY carried constants the host cannot work with (a zero count, pitch or window)."""
+
+
 class ProtocolMismatch(LinkError):  # noqa: N818
     """The controller speaks another protocol version or schema."""
 

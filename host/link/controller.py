@@ -9,6 +9,8 @@ controller reset: otherwise they are still in force). Motions are never re-sent.
 from __future__ import annotations
 
 import asyncio
+import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -17,7 +19,7 @@ from typing import Protocol
 
 from host.link.common import LinkError, LinkEvent, LinkState
 from host.link.reconnect import BackoffConfig, Supervisor
-from host.link.session import SEQ_MOD, Session, SessionConfig
+from host.link.session import SEQ_MOD, Session, SessionConfig, enum_or_int
 from host.transport.base import Transport
 from protocol import Packet
 from protocol.enums import Fault, State, Stream
@@ -42,6 +44,7 @@ from protocol.messages import (
     StreamSet,
 )
 
+log = logging.getLogger(__name__)
 UM_PER_MM = 1000.0
 URAD_PER_RAD = 1_000_000.0
 RING_SAMPLES = 4096  # ~4 s of encoder samples at 1 kHz
@@ -154,6 +157,7 @@ class Controller:
         self.identity: Identity | None = None
         self.encoder_ring: deque[tuple[int, float, float, int]] = deque(maxlen=RING_SAMPLES)
         self.unsynced_samples = 0  # samples dropped before the clock sync had a probe
+        self.sink_errors = 0  # samples a sink raised on (logged, then ignored)
         self._sinks: list[SampleSink] = []
         self._streams: dict[Stream, int] = {Stream.STATUS: STATUS_RATE_HZ}
         self._params: dict[int, int] = {}
@@ -194,8 +198,8 @@ class Controller:
         st = self._status.msg if self._status is not None else None
         return Snapshot(
             self.link_state,
-            State(st.state) if st is not None else None,
-            Fault(st.faults) if st is not None else Fault.NONE,
+            enum_or_int(State, st.state) if st is not None else None,
+            enum_or_int(Fault, st.faults) if st is not None else Fault.NONE,
             st.inputs if st is not None else 0,
             self._last_position_mm,
             self._updated_ns,
@@ -230,7 +234,9 @@ class Controller:
 
     async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
         """Point the head."""
-        await self._command(HeadSet(round(pan_rad * URAD_PER_RAD), round(tilt_rad * URAD_PER_RAD)))
+        await self._command(
+            HeadSet(_scaled(pan_rad, URAD_PER_RAD), _scaled(tilt_rad, URAD_PER_RAD))
+        )
 
     async def set_streams(self, rates_hz: dict[Stream, int]) -> None:
         """Switch streams on (rate) or off (0); remembered across reconnects."""
@@ -306,9 +312,10 @@ class Controller:
         st = self._status
         if st is None or (after_seq is not None and (st.seq - after_seq) % SEQ_MOD >= SEQ_MOD // 2):
             return False
-        state = State(st.msg.state)
+        state = enum_or_int(State, st.msg.state)
         if state in (State.FAULT, State.ESTOP):
-            raise MotionFailed(f"controller in {state.name}, faults {Fault(st.msg.faults)!r}")
+            faults = enum_or_int(Fault, st.msg.faults)
+            raise MotionFailed(f"controller in {getattr(state, 'name', state)}, faults {faults!r}")
         if state not in (State.READY, State.IDLE):
             return False
         # The controller's own profile end, not the encoder (whether the trolley followed is the
@@ -335,6 +342,14 @@ class Controller:
             self._on_sample(msg)
 
     def _on_sample(self, msg: EncoderSample | HeadSample | RangeSample | RefMark) -> None:
+        """Convert to host time and units; a failing sink is logged, never the link's problem."""
+        try:
+            self._feed_sinks(msg)
+        except Exception:
+            self.sink_errors += 1
+            log.exception("a sample sink failed on %s", type(msg).__name__)
+
+    def _feed_sinks(self, msg: EncoderSample | HeadSample | RangeSample | RefMark) -> None:
         """Convert to host time and units; feed the ring and the sinks."""
         clock = self.session.clock
         if not clock.ready or self.identity is None:
@@ -361,4 +376,11 @@ class Controller:
 
 def _um(mm: float) -> int:
     """mm (or mm/s, mm/s²) → integer µm for the wire."""
-    return round(mm * UM_PER_MM)
+    return _scaled(mm, UM_PER_MM)
+
+
+def _scaled(value: float, factor: float) -> int:
+    """value × factor rounded for the wire; ValueError (not OverflowError) for NaN or ±inf."""
+    if not math.isfinite(value):
+        raise ValueError(f"expected a finite number, got {value}")
+    return round(value * factor)

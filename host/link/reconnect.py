@@ -114,6 +114,11 @@ class Supervisor:
             except (LinkError, TransportError) as exc:
                 log.warning("reconnect attempt %d failed: %s", attempt + 1, exc)
                 attempt += 1
+            except Exception:
+                # Anything else is a bug, but the supervisor must outlive it or the link stays
+                # down for good: log it and keep retrying with backoff.
+                log.exception("reconnect attempt %d failed unexpectedly", attempt + 1)
+                attempt += 1
 
     async def _attempt(self, reopen: bool) -> Identify:
         """Open (if asked), handshake and restore; leaves the state UP or raises."""

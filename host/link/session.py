@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from typing import Any
 
 from host.link.clocksync import ClockSync
 from host.link.common import (
+    BadIdentity,
     CommandTimeout,
     ControllerRejected,
     LinkDown,
@@ -162,7 +164,9 @@ class Session:
         self.identity: Identify | None = None
         self._decoder = FrameDecoder()
         self.stats.drops = self._decoder.drops
-        self._tx_seq = 0
+        # A random first seq: a restarted host is unlikely to repeat its predecessor's seqs
+        # even towards a controller that kept its reply cache (PROTOCOL.md §6).
+        self._tx_seq = random.randrange(SEQ_MOD)
         self._rx_seq = _RxSeq()
         self._inflight: dict[int, _Pending] = {}
         self._window = 1  # until IDENTIFY tells us rx_window
@@ -224,6 +228,7 @@ class Session:
             raise ProtocolMismatch(
                 PROTOCOL_VERSION, SCHEMA_HASH, ident.protocol_version, ident.schema_hash
             )
+        _check_identity(ident)
         rebooted = self.identity is not None and self.identity.boot_id != ident.boot_id
         if rebooted or self.identity is None:
             self.clock = ClockSync(ident.mcu_clock_hz or 1_000_000)
@@ -419,7 +424,9 @@ class Session:
             return
         if isinstance(msg, Nak):
             self.stats.naks += 1
-            exc = ControllerRejected(entry.name, _enum(NakCode, msg.code), _enum(State, msg.state))
+            exc = ControllerRejected(
+                entry.name, enum_or_int(NakCode, msg.code), enum_or_int(State, msg.state)
+            )
             entry.future.set_exception(exc)
             return
         if spec_of(msg).name != entry.reply_name:
@@ -500,7 +507,23 @@ class Session:
             return None
 
 
-def _enum(kind: Any, value: int) -> Any:
+_IDENTITY_POSITIVE = (
+    "encoder_counts_per_rev",
+    "steps_per_rev",
+    "sprocket_teeth",
+    "chain_pitch_um",
+    "rx_window",
+)
+
+
+def _check_identity(ident: Identify) -> None:
+    """Refuse constants that would divide by zero later (a misconfigured controller)."""
+    bad = [name for name in _IDENTITY_POSITIVE if getattr(ident, name) <= 0]
+    if bad:
+        raise BadIdentity(f"IDENTIFY has non-positive {', '.join(bad)}: controller misconfigured")
+
+
+def enum_or_int(kind: Any, value: int) -> Any:
     """Wire integer → enum member; an unknown value stays an int rather than crashing."""
     try:
         return kind(value)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import io
 import math
+import os
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -12,6 +14,7 @@ import pytest
 
 from host.config import Config, ControlConfig, loads_config
 from host.control.api import PoseSample
+from host.control.cli_commands import emit
 from host.control.fake import FakeController
 from host.control.ops import OpContext
 from host.control.server import ControlServer
@@ -109,3 +112,42 @@ async def test_systemd_unit_prints_the_unit() -> None:
     code, out, _ = await cli("systemd-unit", "--exec", "/opt/o/bin/orbitar")
     assert code == 0
     assert "ExecStart=/opt/o/bin/orbitar daemon --config /etc/orbitar/orbitar.toml" in out
+
+
+async def closed_pipe_cli(*argv: str) -> tuple[int, str]:
+    """Run `python -m host.cli ARGV` (the `orbitar` entry point) into a pipe nobody reads."""
+    read_fd, write_fd = os.pipe()
+    os.close(read_fd)  # the reader is gone before the first byte: every write hits EPIPE
+    try:
+        proc = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "host.cli", *argv,
+            stdout=write_fd, stderr=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+    finally:
+        os.close(write_fd)
+    _, err = await asyncio.wait_for(proc.communicate(), 60)
+    assert proc.returncode is not None
+    return proc.returncode, err.decode()
+
+
+async def test_status_into_a_closed_pipe_exits_quietly(
+    served: tuple[ControlServer, FakeController, str],
+) -> None:
+    for argv in (("status",), ("status", "--json"), ("home",)):
+        code, err = await closed_pipe_cli(*argv, "--socket", served[2])
+        assert (code, err) == (0, ""), argv
+    assert (await closed_pipe_cli("config", "default")) == (0, "")
+
+
+def test_emit_reports_a_gone_reader_and_silences_the_stream() -> None:
+    read_fd, write_fd = os.pipe()
+    with open(write_fd, "w", encoding="utf-8") as stream:
+        assert emit("first\n", stream)
+        assert os.read(read_fd, 100) == b"first\n"
+        os.close(read_fd)
+        assert not emit("state: IDLE\n" * 1000, stream)
+        stream.write("after\n")  # lands in /dev/null now, as the exit-time flush will
+        stream.flush()
+        assert os.path.samestat(os.fstat(stream.fileno()), os.stat(os.devnull))
+    assert emit("kept\n", buffer := io.StringIO())  # streams without a descriptor still work
+    assert buffer.getvalue() == "kept\n"

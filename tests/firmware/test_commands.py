@@ -196,3 +196,24 @@ def test_garbage_bytes_are_counted_not_fatal(rig: Rig) -> None:
     cnt = rig.sim.firmware.counters
     assert cnt.oversize == 1
     assert cnt.bad_crc + cnt.bad_cobs + cnt.bad_length >= 2
+
+
+def test_hello_forgets_replies_so_a_restarted_host_reusing_seqs_is_obeyed() -> None:
+    from hil_sim.client import FrameClient
+    from hil_sim.runner import Simulation
+    from protocol import SCHEMA_HASH, Flag
+    from protocol.messages import Hello, Identify, ParamSet
+
+    sim = Simulation()
+    client = FrameClient(sim)
+    acked = Flag.ACK_REQUESTED
+    client.send(Hello(1, SCHEMA_HASH), flags=acked, seq=0)
+    client.send(ParamSet(1, 700), flags=acked, seq=1)
+    client.send(ParamSet(1, 800), flags=acked, seq=2)
+    client.run(5)
+    # The host restarts: HELLO again at seq 0, then the very same frame body at seq 1.
+    client.send(Hello(1, SCHEMA_HASH), flags=acked, seq=0)
+    client.send(ParamSet(1, 700), flags=acked, seq=1)
+    replies = [p.message for p in client.run(5)]
+    assert any(isinstance(r, Identify) for r in replies)
+    assert sim.firmware.params.values[1] == 700  # executed, not answered from the old cache

@@ -3,16 +3,20 @@
 from __future__ import annotations
 
 import asyncio
+import math
+import struct
 from collections.abc import AsyncIterator
 
 import pytest
 
-from host.link.common import ControllerRejected, LinkDown, LinkEvent, LinkState
+from host.link.common import BadIdentity, ControllerRejected, LinkDown, LinkEvent, LinkState
 from host.link.controller import Controller, MotionFailed
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
+from protocol import PROTOCOL_VERSION, SCHEMA, cobs
+from protocol.crc import crc16
 from protocol.enums import NakCode, State, Stream
-from protocol.messages import MoveTo, StreamSet
+from protocol.messages import MoveTo, Status, StreamSet
 from tests.link.fake_controller import FakeController
 
 CFG = SessionConfig(rto_initial_s=0.02, heartbeat_interval_s=0.02, dead_after_heartbeats=10)
@@ -155,3 +159,35 @@ async def test_heartbeat_silence_drops_then_recovers(rig) -> None:  # type: igno
         if ctrl.link_state is LinkState.UP:
             break
     assert ctrl.link_state is LinkState.UP
+
+
+async def test_unknown_state_in_status_does_not_break_the_snapshot(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    # A newer firmware's state and fault bit: out of our encoder's range, so built by hand.
+    raw = struct.pack("<BBHB", PROTOCOL_VERSION, 0, 1234, SCHEMA.by_cls[Status].id)
+    raw += struct.pack("<IBHBii", 0, 99, 0x4000, 0x10, 1000, 1000)
+    fake.transport.inject(cobs.encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00")
+    await asyncio.sleep(0.01)
+    snap = ctrl.snapshot()
+    assert snap.state == 99
+    assert snap.position_mm == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+async def test_non_finite_targets_are_refused_before_anything_is_sent(rig, bad: float) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    before = len(fake.executed)
+    with pytest.raises(ValueError, match="finite"):
+        await ctrl.move_to(bad, 100.0, 100.0)
+    with pytest.raises(ValueError, match="finite"):
+        await ctrl.set_head(0.0, bad)
+    assert len(fake.executed) == before
+
+
+async def test_identify_with_zero_constants_is_refused() -> None:
+    fake = FakeController(counts_per_rev=0)
+    ctrl = Controller(fake.wire(), CFG, BACKOFF, seed=1)
+    with pytest.raises(BadIdentity, match="encoder_counts_per_rev"):
+        await ctrl.connect()
+    await ctrl.close()
+    await fake.close()

@@ -139,3 +139,51 @@ def test_toml_syntax_and_unreadable_file(tmp_path: Path) -> None:
     assert problems("[link\n")[0].startswith("TOML syntax")
     with pytest.raises(ConfigError, match="cannot read"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_home_marks_and_workpiece_keys_load(tmp_path: Path) -> None:
+    path = tmp_path / "rig.toml"
+    path.write_text(
+        "[track]\nhome_s_mm = 1250.5\nreference_marks_mm = [2000, 5000.25, 12000]\n"
+        "[model]\nposition_mm = [3000, 1500, 0]\nyaw_deg = -45\n"
+    )
+    config = load_config(path)
+    assert config.track.home_s_mm == 1250.5
+    assert config.track.reference_marks_mm == (2000.0, 5000.25, 12000.0)
+    assert config.model.position_mm == (3000.0, 1500.0, 0.0)
+    assert config.model.yaw_rad == pytest.approx(-math.pi / 4)
+    defaults = Config()
+    assert (defaults.track.home_s_mm, defaults.track.reference_marks_mm) == (0.0, ())
+    assert (defaults.model.position_mm, defaults.model.yaw_rad) == ((0.0, 0.0, 0.0), 0.0)
+    text = default_config_text()
+    for line in ("home_s_mm = 0.0", "reference_marks_mm = []", "position_mm = [0.0, 0.0, 0.0]"):
+        assert line in text
+    assert "\nyaw_deg = 0.0" in text.split("[model]")[1]
+
+
+def test_home_marks_and_workpiece_problems_are_named() -> None:
+    found = problems(
+        '[track]\nreference_marks_mm = [5000, 2000, 2000, 99999]\nhome_s_mm = "near"\n'
+        '[model]\nposition_mm = [1, 2]\nyaw_deg = "north"\n'
+    )
+    assert "track.reference_marks_mm[1] = 2000.0: must be above the previous mark 5000.0" in (
+        " ".join(found)
+    )
+    assert any(p.startswith("track.reference_marks_mm[2] = 2000.0: must be above") for p in found)
+    assert any(
+        p.startswith("track.reference_marks_mm[3] = 99999.0: outside the track") for p in found
+    )
+    assert "track.home_s_mm = 'near': expected float, got str" in found
+    assert "model.position_mm = [1, 2]: expected a list of 3 numbers" in found
+    assert "model.yaw_deg = 'north': expected float, got str" in found
+    assert len(found) == 6
+    found = problems('[track]\nreference_marks_mm = [1000, "x", true]\nhome_s_mm = 1e9\n')
+    assert "track.reference_marks_mm[1] = 'x': expected a number, got str" in found
+    assert "track.reference_marks_mm[2] = True: expected a number, got bool" in found
+    assert any(p.startswith("track.home_s_mm = 1000000000.0: out of range") for p in found)
+    assert problems("[track]\nreference_marks_mm = 3000\n") == [
+        "track.reference_marks_mm = 3000: expected a list"
+    ]
+    assert problems("[track]\nhome_s_mm = 17000\n") == [
+        "track.home_s_mm = 17000.0: beyond the track's 16283.2 mm"
+    ]

@@ -31,6 +31,9 @@ kind = "serial"
 url = "{dir}/sim"
 baud = 115200
 heartbeat_ms = 100
+[track]
+home_s_mm = 150.0
+reference_marks_mm = [250.0, 400.0]
 [camera]
 source = "none"
 fps = 20.0
@@ -43,6 +46,7 @@ status_interval_s = 0.5
 WATCHDOG_USEC = "400000"
 HOME_SPEED_UM_S = 150_000  # the default 50 mm/s would spend ~8 s of the test homing
 POSITION_TOLERANCE_MM = 3.0
+HOME_S_MM = 150.0  # the emulator's home switch; its zero is at the next index, a survey away
 
 
 class Notifications:
@@ -130,6 +134,7 @@ async def start_sim(tmp_path: Path) -> asyncio.subprocess.Process:
     """The emulator behind a pty at tmp/sim, once it says it is ready."""
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "hil_sim", "--link", "pty", "--link-path", str(tmp_path / "sim"),
+        "--marks", "250,400",
         stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
     )  # fmt: skip
     assert proc.stdout is not None
@@ -200,12 +205,17 @@ async def test_daemon_drives_the_emulated_trolley(rig: Rig) -> None:
         await wait_until_at(client, 300.0, 10.0)
         await client.request("subscribe", topics=["pose"])
         pose = (await client.next_event(timeout_s=5))["data"]
-        assert abs(pose["s_mm"] - 300.0) < POSITION_TOLERANCE_MM
+        stats = await client.request("link_stats")
+        # The pose is on the corrected track position; the raw one adds the configured home.
+        assert pose["s_mm"] == pytest.approx(stats["track_s_mm"], abs=0.01)
+        assert stats["raw_s_mm"] == pytest.approx(HOME_S_MM + 300.0, abs=POSITION_TOLERANCE_MM)
         assert pose["state"] == "READY"
         assert abs(pose["T_w_c"][2][3] - 4000.0) < 200.0  # the runway is 4 m up
-        stats = await client.request("link_stats")
         assert stats["handshakes"] == 1
         assert stats["frames_in"] > 100
+        assert stats["homed"] is True
+        assert stats["marks_seen"] >= 1  # REF_MARK over the wire into the feed
+        assert "chain_scale" in stats
     shown = await status(rig)
     assert abs(shown["controller"]["position_mm"] - 300.0) < POSITION_TOLERANCE_MM
     assert shown["service"]["fps"] > 10.0  # poses published without a camera

@@ -1,0 +1,169 @@
+"""The daemon's pose feed: home offset, drift correction on reference marks, workpiece pose."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from host.config import Config, loads_config
+from host.service.wiring import (
+    DEFAULT_CHAIN_PITCH_MM,
+    STREAM_RATES_HZ,
+    PoseFeed,
+    PosePublisher,
+    build_pose_source,
+    controller_factory,
+    frame_loop_factory,
+    workpiece_pose,
+)
+from protocol.enums import Inputs
+
+STRETCH = 1.005  # a worn chain: 0.5 % longer than nominal
+HOME_S_MM = 1000.0
+MARKS_MM = (2000.0, 5000.0, 8000.0, 11000.0, 14000.0)
+COUNT_MM = 0.05  # encoder resolution the synthetic marks are captured at
+STEP_MM = 10.0  # controller travel between encoder samples
+SAMPLE_NS = 5_000_000
+HOMED = int(Inputs.HOMED)
+
+
+def marked_feed(pitch_mm: float | None = 12.7) -> PoseFeed:
+    """A feed on the default runway with home and marks configured."""
+    marks = ", ".join(str(m) for m in MARKS_MM)
+    config = loads_config(f"[track]\nhome_s_mm = {HOME_S_MM}\nreference_marks_mm = [{marks}]\n")
+    _, feed = build_pose_source(config, STREAM_RATES_HZ["serial"], pitch_mm=lambda: pitch_mm)
+    return feed
+
+
+def drive(feed: PoseFeed, travel_mm: float, lap_mm: float) -> list[tuple[float, float, float]]:
+    """Move the stretched chain; (true s, fused s, raw s) per sample after the second mark."""
+    after_two: list[tuple[float, float, float]] = []
+    crossings = 0
+    for i in range(round(travel_mm / STEP_MM) + 1):
+        s_ctrl, s_next = i * STEP_MM, (i + 1) * STEP_MM
+        feed.on_encoder(i * SAMPLE_NS, s_ctrl, 2000.0, HOMED)
+        if crossings >= 2:
+            true = HOME_S_MM + STRETCH * s_ctrl
+            after_two.append((true, feed.s_mm or 0.0, feed.raw_s_mm or 0.0))
+        for mark in _marks_between(
+            HOME_S_MM + STRETCH * s_ctrl, HOME_S_MM + STRETCH * s_next, lap_mm
+        ):
+            captured = round((mark - HOME_S_MM) / STRETCH / COUNT_MM) * COUNT_MM
+            feed.on_mark(i * SAMPLE_NS + 1, captured)
+            crossings += 1
+    return after_two
+
+
+def _marks_between(lo_mm: float, hi_mm: float, lap_mm: float) -> list[float]:
+    """Unwrapped positions of the marks passed between two true arc lengths."""
+    laps = range(math.floor(lo_mm / lap_mm), math.floor(hi_mm / lap_mm) + 1)
+    return [m + k * lap_mm for k in laps for m in MARKS_MM if lo_mm <= m + k * lap_mm < hi_mm]
+
+
+def test_stretched_chain_is_corrected_after_two_marks() -> None:
+    feed = marked_feed()
+    lap_mm = feed.lap_mm or 0.0
+    assert lap_mm == pytest.approx(2 * (4000 + 1000) + 2 * math.pi * 1000)
+    samples = drive(feed, 21_000.0, lap_mm)  # 1.4 laps: marks of the second lap too
+    worst_fused = max(abs(fused - true) for true, fused, _ in samples)
+    assert worst_fused < 0.5
+    true, _, raw = samples[-1]
+    assert raw - HOME_S_MM == pytest.approx(21_000.0)  # the raw one is the controller's + home
+    assert true - raw == pytest.approx(0.005 * 21_000.0, abs=1e-6)  # 105 mm off after 21 m
+    assert feed.encoder.window()[1][-1][0] == pytest.approx(feed.s_mm)  # the buffer holds fused
+    stats = feed.stats()
+    assert stats["chain_scale"] == pytest.approx(STRETCH, abs=2e-5)
+    assert stats["marks_seen"] == stats["marks_used"] == 7  # five, then two on the next lap
+    assert stats["marks_rejected"] == stats["marks_unassociated"] == stats["skips_detected"] == 0
+    assert stats["position_sigma_mm"] < 0.5
+    assert stats["raw_s_mm"] == pytest.approx(raw)
+
+
+def test_without_marks_the_feed_only_adds_home() -> None:
+    config = loads_config("[track]\nhome_s_mm = 250.5\n")
+    _, feed = build_pose_source(config, STREAM_RATES_HZ["can"])
+    assert feed.chain is None
+    feed.on_encoder(1_000, 100.0, 0.0, 0)
+    feed.on_mark(2_000, 100.0)  # counted, nothing to correct against
+    assert feed.s_mm == feed.raw_s_mm == pytest.approx(350.5)
+    assert feed.stats() == {
+        "track_s_mm": 350.5,
+        "raw_s_mm": 350.5,
+        "marks_seen": 1,
+        "homed": False,
+    }
+
+
+def test_chain_pitch_follows_identify_until_the_first_reference() -> None:
+    pitch: list[float | None] = [None]
+    config = loads_config("[track]\nreference_marks_mm = [500.0, 1500.0]\n")
+    _, feed = build_pose_source(config, STREAM_RATES_HZ["xbee"], pitch_mm=lambda: pitch[0])
+    assert feed.chain is not None
+    assert feed.chain.config.chain_pitch_mm == DEFAULT_CHAIN_PITCH_MM
+    feed.on_encoder(500, 0.0, 0.0, HOMED)
+    pitch[0] = 15.875  # the controller identified itself: an ANSI 50 chain
+    feed.on_mark(1_000, 499.0)
+    assert feed.chain.config.chain_pitch_mm == 15.875
+    assert feed.chain.stats.updates == 1
+    pitch[0] = 9.525  # a later change must not throw away what the filter learned
+    feed.on_mark(2_000, 1497.0)
+    assert feed.chain.config.chain_pitch_mm == 15.875
+    assert feed.chain.stats.updates == 2
+
+
+def test_far_mark_is_unassociated_not_applied() -> None:
+    feed = marked_feed()
+    feed.on_encoder(0, 0.0, 0.0, HOMED)
+    feed.on_mark(1, 2500.0)  # predicted 3500: 1500 mm from the nearest mark
+    assert feed.chain is not None
+    assert feed.stats()["marks_unassociated"] == 1
+    assert feed.stats()["marks_used"] == 0
+    feed.on_encoder(2, 10.0, 0.0, HOMED)
+    assert feed.s_mm == pytest.approx(HOME_S_MM + 10.0)
+
+
+def test_marks_count_only_after_homing_and_rehoming_starts_afresh() -> None:
+    feed = marked_feed()
+    feed.on_encoder(0, 995.0, 0.0, 0)  # power-up: the zero is wherever the trolley stood
+    feed.on_mark(1, 995.0)
+    assert feed.stats()["marks_unhomed"] == 1
+    assert feed.stats()["marks_used"] == 0
+    feed.on_encoder(2, 0.0, 0.0, HOMED)
+    feed.on_mark(3, (MARKS_MM[0] - HOME_S_MM) / STRETCH)
+    assert feed.chain is not None
+    assert feed.chain.x[1] > 1.001  # the stretch shows
+    before = feed.chain
+    feed.on_encoder(4, 0.0, 0.0, HOMED)
+    assert feed.chain is before  # still homed: the filter keeps what it learned
+    feed.on_encoder(5, 0.0, 0.0, 0)  # HOME again: the encoder is re-referenced
+    feed.on_encoder(6, 0.0, 0.0, HOMED)
+    assert feed.chain is not before
+    assert feed.stats()["marks_used"] == 0
+    assert feed.stats()["chain_scale"] == 1.0
+
+
+def test_workpiece_pose_from_model_keys() -> None:
+    config = loads_config("[model]\nposition_mm = [1000, -250.5, 12]\nyaw_deg = 90\n")
+    T_w_p = workpiece_pose(config)
+    assert np.allclose(T_w_p[:3, 3], [1000.0, -250.5, 12.0])
+    assert np.allclose(T_w_p[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])  # x_p along y_w
+    assert np.allclose(workpiece_pose(Config()), np.eye(4))
+
+
+def test_factory_wires_the_feed_into_link_stats() -> None:
+    text = '[track]\nhome_s_mm = 100.0\nreference_marks_mm = [3000.0]\n[camera]\nsource = "none"\n'
+    config = loads_config(text)
+    taps: list[Any] = []
+    controller = controller_factory(config, lambda *rec: taps.append(rec))
+    assert controller.chain_pitch_mm() is None  # no handshake yet
+    loop = frame_loop_factory(config, controller, lambda pose: None, lambda *rec: None)
+    assert isinstance(loop, PosePublisher)
+    assert controller.track_feed is not None
+    controller.track_feed.on_encoder(1_000, 42.0, 0.0, 0)
+    stats = controller.link_stats()
+    assert stats["raw_s_mm"] == pytest.approx(142.0)
+    assert stats["chain_scale"] == 1.0
+    assert stats["marks_seen"] == 0
