@@ -12,6 +12,7 @@ does (slerp on rotation, linear on translation), for pose streams without joint 
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -71,12 +72,20 @@ class SampleBuffer:
         self._start = 0
         self._count = 0
         self.rejected = 0  # samples dropped for going back in time
+        # The link pushes on the event loop while the frame loop looks up in a worker thread: a
+        # lookup must never see a half-advanced ring (times out of order, a wrong bracket).
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return self._count
 
     def push(self, t_ns: int, values: npt.ArrayLike) -> bool:
         """Append a sample; returns False (and counts it) if it is not newer than the last."""
+        with self._lock:
+            return self._push(t_ns, values)
+
+    def _push(self, t_ns: int, values: npt.ArrayLike) -> bool:
+        """push() under the lock."""
         if self._count and t_ns <= self._t[self._start + self._count - 1]:
             self.rejected += 1
             return False
@@ -91,18 +100,30 @@ class SampleBuffer:
 
     def clear(self) -> None:
         """Forget all samples (e.g. after a re-home or a clock resync)."""
-        self._start = self._count = 0
+        with self._lock:
+            self._start = self._count = 0
 
     def window(self) -> tuple[Int64Array, FloatArray]:
-        """Views of the retained times and values, oldest first."""
-        sl = slice(self._start, self._start + self._count)
-        return self._t[sl], self._v[sl]
+        """Copies of the retained times and values, oldest first."""
+        with self._lock:
+            t, v = self._view()
+            return t.copy(), v.copy()
 
     def lookup(self, t_ns: int) -> Lookup:
         """Value at t_ns by interpolation, or bounded extrapolation past the newest sample."""
+        with self._lock:
+            return self._lookup(t_ns)
+
+    def _view(self) -> tuple[Int64Array, FloatArray]:
+        """Views of the retained window (valid only under the lock)."""
+        sl = slice(self._start, self._start + self._count)
+        return self._t[sl], self._v[sl]
+
+    def _lookup(self, t_ns: int) -> Lookup:
+        """lookup() under the lock."""
         if not self._count:
             return Lookup(LookupStatus.EMPTY, t_ns)
-        t, v = self.window()
+        t, v = self._view()
         if t_ns < t[0]:
             return Lookup(LookupStatus.STALE, t_ns)
         i = int(np.searchsorted(t, t_ns, side="right"))
