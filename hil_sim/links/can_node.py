@@ -2,7 +2,7 @@
 
 `CanDeviceNode` is what the C firmware's CAN driver does: reassemble host frames from segments
 (id 0x200 + node) for the device endpoint and segment the device's 0x00-delimited frames onto
-id 0x280 + node, using `host.transport.can_segments`. Frame times follow the bitrate roughly
+id 0x280 + node, using `protocol.can_segments`. Frame times follow the bitrate roughly
 (47 overhead bits + 8 per data byte, plus ~20 % stuffing); faults act per CAN frame: a lost
 frame is a receiver overrun, a corrupted one is caught by the CAN CRC and resent by the hardware
 after one more frame time.
@@ -29,8 +29,14 @@ from hil_sim.links.endpoint import ByteEndpoint, FrameSplitter
 from hil_sim.links.faults import FaultConfig, FaultInjector
 from hil_sim.links.pacing import PacedPipe
 from hil_sim.links.pty_uart import PtyPort
-from host.transport.can import CAN_ERR_BUSOFF, DEFAULT_BITRATE, ids_for
-from host.transport.can_segments import CLASSIC_DATA_BYTES, Reassembler, Segmenter
+from protocol.can_segments import (
+    CAN_ERR_BUSOFF,
+    CLASSIC_DATA_BYTES,
+    DEFAULT_BITRATE,
+    Reassembler,
+    Segmenter,
+    ids_for,
+)
 
 FRAME_OVERHEAD_BITS = 47
 STUFFING_FACTOR = 1.2

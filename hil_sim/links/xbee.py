@@ -17,7 +17,7 @@ from hil_sim.links.endpoint import ByteEndpoint, FrameSplitter
 from hil_sim.links.faults import FaultConfig, FaultInjector
 from hil_sim.links.pacing import PacedPipe, uart_rate_bytes_s
 from hil_sim.links.pty_uart import PtyPort
-from host.transport.xbee_frames import (
+from protocol.xbee_frames import (
     MAX_RF_PAYLOAD,
     ApiFrameDecoder,
     DeliveryStatus,

@@ -18,34 +18,18 @@ from typing import Any, ClassVar
 import can
 
 from host.transport.base import Transport, TransportError
-from host.transport.can_segments import (
+from protocol.can_segments import (
+    CAN_ERR_BUSOFF,
     CLASSIC_DATA_BYTES,
+    DEFAULT_BITRATE,
     FD_DATA_BYTES,
     Reassembler,
     Segmenter,
+    check_node_id,
+    ids_for,
 )
 
-HOST_TO_CONTROLLER_BASE_ID = 0x200
-CONTROLLER_TO_HOST_BASE_ID = 0x280
-NODE_ID_MIN = 1
-NODE_ID_MAX = 127
-DEFAULT_BITRATE = 500_000
-CAN_ERR_BUSOFF = 0x0000_0040  # SocketCAN error class bit in an error frame's id
 NOTIFIER_POLL_S = 0.05  # how long the Notifier thread blocks in recv: bounds close() latency
-
-
-def check_node_id(node_id: object) -> int:
-    """1..127; ValueError otherwise."""
-    if isinstance(node_id, bool) or not isinstance(node_id, int):
-        raise ValueError(f"node_id must be an integer in [1, 127], got {node_id!r}")
-    if not NODE_ID_MIN <= node_id <= NODE_ID_MAX:
-        raise ValueError(f"node_id={node_id} outside [{NODE_ID_MIN}, {NODE_ID_MAX}]")
-    return node_id
-
-
-def ids_for(node_id: int) -> tuple[int, int]:
-    """(host → controller id, controller → host id) of a node."""
-    return HOST_TO_CONTROLLER_BASE_ID + node_id, CONTROLLER_TO_HOST_BASE_ID + node_id
 
 
 class _ErrorListener(can.Listener):

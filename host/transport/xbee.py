@@ -13,7 +13,7 @@ from typing import Any, ClassVar
 
 from host.transport.base import Transport
 from host.transport.serial import ByteStream, check_baud, check_url
-from host.transport.xbee_frames import (
+from protocol.xbee_frames import (
     MAX_RF_PAYLOAD,
     ApiFrameDecoder,
     FrameType,

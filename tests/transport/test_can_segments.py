@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from host.transport.can_segments import (
+from protocol.can_segments import (
     END,
     PARTIAL_TIMEOUT_S,
     START,

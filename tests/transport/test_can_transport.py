@@ -12,9 +12,9 @@ import pytest
 from hil_sim.links.can_node import VirtualCanNode
 from hil_sim.links.endpoint import FakeController, build
 from host.transport import LinkState, Transport, create_transport
-from host.transport.can import CAN_ERR_BUSOFF, CanTransport, ids_for
-from host.transport.can_segments import Segmenter
+from host.transport.can import CanTransport
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, encode_frame
+from protocol.can_segments import CAN_ERR_BUSOFF, Segmenter, ids_for
 from protocol.messages import Hello, Identify
 from tests.transport.harness import Collector
 

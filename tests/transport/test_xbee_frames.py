@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from host.transport.xbee_frames import (
+from protocol.xbee_frames import (
     ApiFrameDecoder,
     ReceivePacket,
     TransmitRequest,

@@ -19,14 +19,14 @@ from hil_sim.links.pty_uart import PtyUart
 from hil_sim.links.tcp import TcpLink
 from hil_sim.links.xbee import CONTROLLER_ADDR64, XBeeModule
 from host.transport import create_transport
-from host.transport.xbee_frames import (
+from protocol import encode_frame
+from protocol.messages import Heartbeat
+from protocol.xbee_frames import (
     ApiFrameDecoder,
     TransmitRequest,
     TransmitStatus,
     encode_api_frame,
 )
-from protocol import encode_frame
-from protocol.messages import Heartbeat
 from tests.transport.harness import Collector
 
 UNITS = 20_000
