@@ -6,6 +6,8 @@ the conversions below are exact rational arithmetic on ints, as the C does them.
 
 from __future__ import annotations
 
+from protocol.schema import MAX_WIRE_FRAME
+
 FW_VERSION = (0 << 16) | (3 << 8) | 0  # major<<16 | minor<<8 | patch
 
 TICK_HZ = 1_000  # control loop rate
@@ -21,7 +23,7 @@ SPROCKET_TEETH = 20
 CHAIN_PITCH_UM = 12_700  # ISO 08B
 UM_PER_REV = SPROCKET_TEETH * CHAIN_PITCH_UM  # 254 000 µm of chain per sprocket turn
 
-MAX_FRAME_BYTES = 84
+MAX_FRAME_BYTES = MAX_WIRE_FRAME  # the protocol's limit: one XBee unicast payload
 RX_WINDOW = 8
 REPLY_CACHE_SIZE = 16  # at least RX_WINDOW: duplicates within the window are answered from here
 RX_BUFFER_BYTES = 256  # the UART DMA ring

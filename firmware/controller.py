@@ -12,6 +12,8 @@ import enum
 
 from firmware import commands
 from firmware.config import (
+    ENCODER_COUNTS_PER_REV,
+    STEPS_PER_REV,
     SUB_PER_STEP,
     TICK_HZ,
     VELOCITY_FILTER_SHIFT,
@@ -261,14 +263,16 @@ class Firmware:
         """Extend the encoder counter, capture an index, read the switches, filter velocity."""
         hal = self.hal
         raw = hal.encoder_read()
-        delta = ((raw - self.enc_raw + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+        delta = _i32(raw - self.enc_raw)
         self.enc_raw = raw
         self.enc_pos += delta
-        self.velocity += (delta * TICK_HZ - self.velocity) >> VELOCITY_FILTER_SHIFT
+        # Round to nearest, not floor: a floored shift settles up to 2^shift − 1 counts/s low.
+        half = 1 << (VELOCITY_FILTER_SHIFT - 1)
+        self.velocity += (delta * TICK_HZ - self.velocity + half) >> VELOCITY_FILTER_SHIFT
         latch = hal.encoder_index_latch()
         if latch is not None:
             # Position of the index pulse in the extended counter's coordinates.
-            back = ((raw - latch + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+            back = _i32(raw - latch)
             self.index_latch = self.enc_pos - back
             self.index_seen = True
         else:
@@ -276,7 +280,7 @@ class Firmware:
         self.switches = hal.inputs_read() & _SWITCH_INPUTS
         mark = hal.mark_latch()
         if mark is not None and Stream.ENCODER in self.active_streams:
-            back = ((raw - mark + 0x8000_0000) & 0xFFFF_FFFF) - 0x8000_0000
+            back = _i32(raw - mark)
             self.tx.send(RefMark(self.now_us, _i32(self.enc_pos - back)))
 
     def _receive(self, data: bytes) -> None:
@@ -297,9 +301,11 @@ class Firmware:
         if (vel > 0 and sw & _IN_LIMIT_MAX) or (vel < 0 and sw & _IN_LIMIT_MIN):
             self.latch_fault(Fault.HARD_LIMIT, halt=True)
         if self.state is not State.ESTOP:
-            err4 = self.profile.steps * 5 - self.enc_pos * 4  # 4 × (steps in counts − counts)
-            limit4 = self.params.values[ParamId.FOLLOWING_ERROR_COUNTS] * 4
-            if (err4 > limit4 or -err4 > limit4) and not self.faults & _F_FOLLOWING:
+            # Compared in units of 1/STEPS_PER_REV count, so no division (and no rounding) is needed
+            # whatever the microstepping and the encoder resolution.
+            err = self.profile.steps * ENCODER_COUNTS_PER_REV - self.enc_pos * STEPS_PER_REV
+            limit = self.params.values[ParamId.FOLLOWING_ERROR_COUNTS] * STEPS_PER_REV
+            if (err > limit or -err > limit) and not self.faults & _F_FOLLOWING:
                 self.latch_fault(Fault.FOLLOWING_ERROR, halt=True)
         if self.watchdog_armed:
             silence_ms = (self.ticks - self.last_rx_tick) * 1000 // TICK_HZ

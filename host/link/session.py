@@ -186,6 +186,9 @@ class Session:
     def start(self) -> None:
         """Begin on an open transport: route its bytes here, start heartbeat and probes."""
         self.transport.set_receiver(self._on_bytes, self.on_lost)
+        # One delimiter first: the controller drops any partial frame it holds (PROTOCOL §7).
+        with contextlib.suppress(TransportError):
+            self.transport.send(b"\x00")
         self._decoder.reset()
         self._rx_seq = _RxSeq()
         self._running = True

@@ -136,7 +136,6 @@ async def test_ready_status_watchdog_outputs_and_sigterm(daemon: Running) -> Non
     async with await connect(daemon.dir / "ctl.sock") as client:
         status = await client.request("status")
         assert status["link_up"] is True
-        assert status["service"]["freed"]["sent"] >= 0
         calibration = await client.request("calibration")
         assert calibration["intrinsics"]["fx"] == 3676.462  # Table 1, from the config
         assert calibration["m_cr"][0][3] == 50.843
@@ -149,6 +148,9 @@ async def test_ready_status_watchdog_outputs_and_sigterm(daemon: Running) -> Non
     packet = decode_d1(await asyncio.wait_for(daemon.freed.packets.get(), 10))
     assert packet.camera_id == 3
     assert packet.pose.z_mm == 4000.0
+    async with await connect(daemon.dir / "ctl.sock") as client:
+        status = await client.request("status")
+        assert status["service"]["freed"]["sent"] >= 1  # the packet we just received was counted
     pings = [t for t, text in daemon.notes.got if "WATCHDOG=1" in text]
     assert len(pings) >= 1
     daemon.proc.send_signal(signal.SIGTERM)
