@@ -123,10 +123,11 @@ class Motion:
     controller: Controller
     ack_seq: int
     target_mm: float | None
+    boot_id: int | None = None  # the controller that accepted it; a reboot ends the motion
 
     async def done(self, timeout_s: float = 60.0) -> None:
         """Return once STATUS shows rest (at this target, for MOVE_TO); MotionFailed on a fault."""
-        await self.controller._wait_for_rest(self.ack_seq, self.target_mm, timeout_s)
+        await self.controller._wait_for_rest(self.ack_seq, self.target_mm, timeout_s, self.boot_id)
 
 
 @dataclass
@@ -272,7 +273,8 @@ class Controller:
     async def _motion(self, msg: object, target_mm: float | None) -> Motion:
         """A command whose completion can be awaited."""
         reply = await self._command(msg)
-        return Motion(self, reply.seq, target_mm)
+        boot_id = self.identity.boot_id if self.identity is not None else None
+        return Motion(self, reply.seq, target_mm, boot_id)
 
     async def _param(self, msg: object) -> int:
         """A parameter request; the reply carries the value in force."""
@@ -284,6 +286,7 @@ class Controller:
         """After each handshake: streams always, parameters after a controller reset."""
         self.identity = Identity.from_message(ident)
         self._status = None
+        self._status_changed.set()  # wake motion waiters: a reboot ends their motions
         for stream, rate in self._streams.items():
             await self.session.request(StreamSet(int(stream), rate))
         if rebooted:
@@ -296,12 +299,15 @@ class Controller:
             self.on_event(event, detail)
 
     async def _wait_for_rest(
-        self, after_seq: int | None, target_mm: float | None, t: float
+        self, after_seq: int | None, target_mm: float | None, t: float, boot_id: int | None = None
     ) -> None:
         """Wait for a STATUS newer than `after_seq` showing rest (at target) or a fault."""
         async with asyncio.timeout(t):
             while True:
                 self.supervisor.require_up()
+                if boot_id is not None and self.identity and self.identity.boot_id != boot_id:
+                    # Its seqs restarted and its profile is gone: this motion will never end.
+                    raise MotionFailed("controller rebooted during the motion")
                 if self._at_rest(after_seq, target_mm):
                     return
                 self._status_changed.clear()

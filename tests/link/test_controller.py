@@ -191,3 +191,16 @@ async def test_identify_with_zero_constants_is_refused() -> None:
         await ctrl.connect()
     await ctrl.close()
     await fake.close()
+
+
+async def test_a_motion_across_a_controller_reboot_fails_at_once(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    motion = await ctrl.jog(50.0, 100.0)
+    waiter = asyncio.create_task(motion.done(30.0))
+    fake.send_heartbeat(5000)
+    fake.reboot(0xBEEF)
+    fake.send_heartbeat(10)
+    # LinkDown while the host re-handshakes, MotionFailed if the new IDENTIFY came first:
+    # either way at once, never after the motion's 30 s timeout.
+    with pytest.raises((MotionFailed, LinkDown)):
+        await asyncio.wait_for(waiter, 5.0)
