@@ -11,6 +11,7 @@ import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -42,13 +43,50 @@ async def command_rate(loss: float) -> tuple[float, int]:
     return rate, session.stats.retransmits
 
 
-def clock_errors_us(seeds: int = 20) -> list[float]:
+class NaiveMidpoint:
+    """The peer: every probe's RTT midpoint, one least-squares line over the last 10 s.
+
+    What a first attempt does (no minimum-RTT selection, no decay, no outlier rejection).
+    """
+
+    WINDOW = 100  # probes: 10 s at 10 Hz
+
+    def __init__(self) -> None:
+        self.samples: list[tuple[int, float]] = []
+        self._last = 0
+
+    def add_probe(self, t0_ns: int, mcu_us: int, t1_ns: int) -> bool:
+        """Take the probe as (mcu µs extended past its wrap, midpoint ns)."""
+        self.samples.append((self._extend(mcu_us), (t0_ns + t1_ns) / 2))
+        del self.samples[: -self.WINDOW]
+        return True
+
+    def mcu_to_host_ns(self, mcu_us: int) -> int:
+        """Host ns of an MCU stamp by the fitted line."""
+        xs = [m for m, _ in self.samples]
+        ys = [h for _, h in self.samples]
+        mx, my = statistics.fmean(xs), statistics.fmean(ys)
+        slope = sum((x - mx) * (y - my) for x, y in zip(xs, ys, strict=True)) / sum(
+            (x - mx) ** 2 for x in xs
+        )
+        return round(my + slope * (self._extend(mcu_us, advance=False) - mx))
+
+    def _extend(self, mcu_us: int, advance: bool = True) -> int:
+        """32-bit stamp → 64-bit, by the signed difference from the last one."""
+        diff = (mcu_us - self._last + (1 << 31)) % WRAP_US - (1 << 31)
+        value = self._last + diff if self.samples or not advance else mcu_us
+        if advance:
+            self._last = value
+        return value
+
+
+def clock_errors_us(seeds: int = 20, naive: bool = False) -> list[float]:
     """Worst mapping error per seeded run of the XBee-like synthetic link."""
     worst = []
     for seed in range(seeds):
         rng = random.Random(seed)
         link = SimLink(rng)
-        sync = ClockSync()
+        sync: Any = NaiveMidpoint() if naive else ClockSync()
         t = run_probes(sync, link, 0, 90)
         errs = []
         for _ in range(200):
@@ -74,8 +112,11 @@ def main() -> None:
         print(f"link_commands_per_s_loss_{int(loss * 100)}pct: {rate:.0f}")
         print(f"link_retransmits_loss_{int(loss * 100)}pct: {retx}")
     worst = clock_errors_us()
+    naive = clock_errors_us(naive=True)
     print(f"clocksync_xbee_worst_error_us_median: {statistics.median(worst):.0f}")
+    print(f"naive_midpoint_xbee_worst_error_us_median: {statistics.median(naive):.0f}")
     print(f"clocksync_xbee_worst_error_us_max: {max(worst):.0f}")
+    print(f"naive_midpoint_xbee_worst_error_us_max: {max(naive):.0f}")
     print(f"clocksync_add_probe_us: {probe_cost_us():.0f}")
 
 
