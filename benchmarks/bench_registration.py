@@ -10,12 +10,16 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from host.geometry.camera import CameraModel, Projector
 from host.geometry.head import Rig
-from host.geometry.model import manipulator_wireframe
+from host.geometry.model import Wireframe, manipulator_wireframe
 from host.registration.overlay import OverlayStyle, WireframeOverlay
 from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
+
+FloatArray = NDArray[np.float64]
+UInt8Image = NDArray[np.uint8]
 
 N_POINTS = 10_000
 PROJECT_REPEATS = 300
@@ -93,11 +97,35 @@ def bench_frame(antialias: bool) -> None:
         times[i] = time.perf_counter_ns() - t0
     ms = times / 1e6
     tag = "_aa" if antialias else ""
+    peer = cv2_frame_ms(src, cam, model, frame, antialias)
     if not antialias:
         print(f"frame_edges: {len(model.edges)}")
         print(f"frame_segments_drawn: {drawn}")
     print(f"frame_ms_median{tag}: {np.median(ms):.3f}")
+    print(f"cv2_frame_ms_median{tag}: {np.median(peer):.3f}  # projectPoints + polylines")
     print(f"frame_ms_p99{tag}: {np.percentile(ms, 99):.3f}")
+    print(f"cv2_frame_ms_p99{tag}: {np.percentile(peer, 99):.3f}")
+
+
+def cv2_frame_ms(
+    src: PoseSource, cam: CameraModel, model: Wireframe, frame: UInt8Image, antialias: bool
+) -> FloatArray:
+    """The peer: the same pose, cv2.projectPoints of every vertex, cv2.polylines of every edge."""
+    K, dist = cam.K, cam.dist
+    times = np.empty(FRAME_REPEATS)
+    line = cv2.LINE_AA if antialias else cv2.LINE_8
+    for i in range(FRAME_REPEATS):
+        t_frame = 4096 * MS + 5 * MS + (i % 10) * 100_000
+        t0 = time.perf_counter_ns()
+        pose = src.pose_at(t_frame)
+        assert pose.T_w_c is not None
+        T_c_w = np.linalg.inv(pose.T_w_c)
+        rvec, _ = cv2.Rodrigues(T_c_w[:3, :3])
+        uv = cv2.projectPoints(model.vertices, rvec, T_c_w[:3, 3], K, dist)[0].reshape(-1, 2)
+        segments = np.round(uv[model.edges]).astype(np.int32)
+        cv2.polylines(frame, list(segments), False, (0, 255, 0), 1, line)
+        times[i] = time.perf_counter_ns() - t0
+    return times / 1e6
 
 
 def main() -> None:
