@@ -25,8 +25,8 @@ from host.geometry.track import Track, runway
 from host.geometry.transforms import FloatArray
 
 FirmwareBytes = Callable[[bytes], None]
-PACE_SLEEP_S = 0.0002  # short, so ticks run within a fraction of a ms of when they are due
 MAX_CATCHUP_TICKS = 200  # after a stall, run at most this many ticks before yielding
+MIN_SLEEP_NS = 20_000  # below this a sleep costs more than it waits: run the next tick now
 
 
 class Simulation:
@@ -186,6 +186,8 @@ class RealtimeRunner:
         # (wall-clock ns, true time s) when pacing began: tick k is due at the wall time that
         # maps to its true time, so `wall_ns_at` converts plant time to host monotonic time.
         self.epoch: tuple[int, float] | None = None
+        self._start_tick = sim.ticks
+        self._tick_ns = sim.dt_s / speed * 1e9
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
@@ -201,8 +203,7 @@ class RealtimeRunner:
         if self._thread is not None:
             raise RuntimeError("runner already started")
         self._stop.clear()
-        with self.lock:
-            self.epoch = (time.monotonic_ns(), self.sim.time_s)
+        self._set_epoch(time.monotonic_ns())
         self._thread = threading.Thread(target=self._run, name="hil-sim", daemon=True)
         self._thread.start()
 
@@ -220,25 +221,61 @@ class RealtimeRunner:
     def __exit__(self, *exc: object) -> None:
         self.stop()
 
-    def _run(self) -> None:
-        """Pace ticks: run the ticks due by now, then sleep a millisecond."""
+    def run_due(self, now_ns: int) -> int:
+        """Run every tick due by host time `now_ns`; return ns until the next one is due.
+
+        The pacing step of the thread, public so that a test can drive it with a fake clock
+        (the first call then sets the epoch). Tick k is due at `wall_ns_at(k · dt)`, the time
+        its MCU stamp stands for, so its link output leaves when the stamp says it does.
+        """
+        if self.epoch is None:
+            self._set_epoch(now_ns)
+        backlog = self._ticks_due(now_ns) - self.sim.ticks
+        if backlog > 1:
+            self.late_ticks += backlog - 1
+        for _ in range(min(backlog, MAX_CATCHUP_TICKS)):
+            self._run_tick()
+        return self._next_due_ns() - now_ns
+
+    def _set_epoch(self, now_ns: int) -> None:
+        """Pin the current tick to host time `now_ns`."""
+        with self.lock:
+            self.epoch = (now_ns, self.sim.time_s)
+            self._start_tick = self.sim.ticks
+        self._tick_ns = self.sim.dt_s / self.speed * 1e9
+
+    def _ticks_due(self, now_ns: int) -> int:
+        """Tick count once every tick due at or before `now_ns` has run."""
+        assert self.epoch is not None
+        elapsed_ns = now_ns - self.epoch[0]
+        if elapsed_ns < 0:
+            return self._start_tick
+        # The tick due exactly at the epoch counts too: tick k runs at its due time, not a
+        # tick later, or every reply would leave one tick after the time it is stamped with.
+        return self._start_tick + int(elapsed_ns // self._tick_ns) + 1
+
+    def _next_due_ns(self) -> int:
+        """Host time at which the next tick to run is due."""
+        assert self.epoch is not None
+        return self.epoch[0] + round((self.sim.ticks - self._start_tick) * self._tick_ns)
+
+    def _run_tick(self) -> None:
+        """One tick under the lock, its link bytes in before and out after."""
         sim, port = self.sim, self.port
-        assert self.epoch is not None  # set by start()
-        t0 = self.epoch[0] / 1e9
-        start_tick = sim.ticks
-        tick_s = sim.dt_s / self.speed
+        with self.lock:
+            data = port.take_inbound()
+            if data:
+                sim.send(data)
+            sim.step(1)
+            out = sim.receive()
+        if out:
+            port.deliver(out)
+
+    def _run(self) -> None:
+        """Pace ticks: run those due, then sleep until the next is due."""
         while not self._stop.is_set():
-            due = start_tick + int((time.monotonic() - t0) / tick_s)
-            backlog = due - sim.ticks
-            if backlog > 1:
-                self.late_ticks += backlog - 1
-            for _ in range(min(backlog, MAX_CATCHUP_TICKS)):
-                with self.lock:
-                    data = port.take_inbound()
-                    if data:
-                        sim.send(data)
-                    sim.step(1)
-                    out = sim.receive()
-                if out:
-                    port.deliver(out)
-            time.sleep(PACE_SLEEP_S)
+            wait_ns = self.run_due(time.monotonic_ns())
+            if wait_ns >= MIN_SLEEP_NS:
+                # Sleeping to the due time itself (not a fixed slice) keeps the lateness at the
+                # OS timer slack; a stop request waits at most one tick.
+                time.sleep(wait_ns / 1e9)

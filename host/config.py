@@ -13,115 +13,28 @@ import math
 import re
 import tomllib
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from host.config_fields import (
+    ConfigError,
+    parse_destination,
+    parse_matrix4,
+    parse_mode,
+    parse_number,
+    parse_regex,
+    parse_source,
+    parse_vector3,
+    spec,
+)
 
 LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 SEGMENT_KINDS = ("straight", "arc")
 TRACK_PRESETS = ("runway", "custom")
 XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
-SOCKET_MODE_RE = re.compile(r"^0?[0-7]{3}$")
-
-Parser = Callable[[Any], Any]  # returns the converted value or raises ValueError(reason)
-
-
-class ConfigError(ValueError):
-    """A configuration file is wrong; `problems` lists every `key = value: reason` found."""
-
-    def __init__(self, problems: list[str]) -> None:
-        super().__init__("invalid configuration:\n  " + "\n  ".join(problems))
-        self.problems = problems
-
-
-def spec(
-    default: Any = dataclasses.MISSING,
-    *,
-    lo: float | None = None,
-    hi: float | None = None,
-    choices: tuple[Any, ...] | None = None,
-    key: str | None = None,
-    deg: bool = False,
-    parse: Parser | None = None,
-    each: bool = False,
-    doc: str = "",
-) -> Any:
-    """A dataclass field with its rule: range, choices, TOML key, degrees, parser, per-item."""
-    meta: dict[str, Any] = {"lo": lo, "hi": hi, "choices": choices, "key": key, "deg": deg}
-    meta.update(parse=parse, each=each, doc=doc)
-    return field(default=default, metadata=meta)
-
-
-def _parse_matrix4(value: Any) -> tuple[tuple[float, ...], ...]:
-    """A 4×4 list of numbers whose last row is 0 0 0 1."""
-    rows = value if isinstance(value, list) else None
-    if rows is None or len(rows) != 4 or any(not isinstance(r, list) or len(r) != 4 for r in rows):
-        raise ValueError("expected a 4×4 list of numbers")
-    if any(isinstance(x, bool) or not isinstance(x, int | float) for r in rows for x in r):
-        raise ValueError("expected numbers only")
-    if [float(x) for x in rows[3]] != [0.0, 0.0, 0.0, 1.0]:
-        raise ValueError("the last row of a homogeneous transform must be [0, 0, 0, 1]")
-    return tuple(tuple(float(x) for x in r) for r in rows)
-
-
-def _parse_source(value: Any) -> str | int:
-    """Camera source: "sim", a device index >= 0, a file path or a URL."""
-    if isinstance(value, bool) or not isinstance(value, int | str):
-        raise ValueError('expected "sim", a device index, a file path or a URL')
-    if isinstance(value, int) and value < 0:
-        raise ValueError("a device index must be >= 0")
-    if isinstance(value, str) and not value:
-        raise ValueError("must not be empty")
-    return value
-
-
-def _parse_destination(value: Any) -> str:
-    """`host:port` with a port in 1..65535."""
-    if not isinstance(value, str) or ":" not in value:
-        raise ValueError('expected "host:port"')
-    host, _, port = value.rpartition(":")
-    if not host or not port.isdigit() or not 1 <= int(port) <= 65535:
-        raise ValueError('expected "host:port" with a port in 1..65535')
-    return value
-
-
-def _parse_vector3(value: Any) -> tuple[float, float, float]:
-    """Three numbers."""
-    if not isinstance(value, list) or len(value) != 3:
-        raise ValueError("expected a list of 3 numbers")
-    if any(isinstance(x, bool) or not isinstance(x, int | float) for x in value):
-        raise ValueError("expected numbers only")
-    return (float(value[0]), float(value[1]), float(value[2]))
-
-
-def _parse_number(value: Any) -> float:
-    """One finite number."""
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"expected a number, got {type(value).__name__}")
-    if not math.isfinite(value):
-        raise ValueError("must be finite")
-    return float(value)
-
-
-def _parse_mode(value: Any) -> int:
-    """An octal permission string such as "0660"."""
-    if not isinstance(value, str) or not SOCKET_MODE_RE.match(value):
-        raise ValueError('expected an octal mode string such as "0660"')
-    return int(value, 8)
-
-
-def _parse_regex(pattern: re.Pattern[str], reason: str) -> Parser:
-    """A parser accepting strings that match `pattern`."""
-
-    def parse(value: Any) -> str:
-        if not isinstance(value, str) or not pattern.match(value):
-            raise ValueError(reason)
-        return value
-
-    return parse
-
 
 # M_cr of the paper's eq. 14: the camera in the head frame, millimetres.
 PAPER_M_CR = (
@@ -147,7 +60,7 @@ class LinkConfig:
     baud: int = spec(115200, lo=1200, hi=4_000_000, doc="UART bit rate")
     xbee_address: str = spec(
         "000000000000FFFF",
-        parse=_parse_regex(XBEE_ADDRESS_RE, "expected 16 hex digits"),
+        parse=parse_regex(XBEE_ADDRESS_RE, "expected 16 hex digits"),
         doc="64-bit address of the controller's XBee, 16 hex digits",
     )
     xbee_api_mode: int = spec(2, choices=(1, 2), doc="XBee API mode: 1 (plain) or 2 (escaped)")
@@ -211,7 +124,7 @@ class TrackConfig:
     )
     reference_marks_mm: tuple[float, ...] = spec(
         (),
-        parse=_parse_number,
+        parse=parse_number,
         each=True,
         doc="surveyed arc lengths of the reference marks, ascending (empty: no drift correction)",
     )
@@ -231,7 +144,7 @@ class HeadConfig:
 
     m_cr: tuple[tuple[float, ...], ...] = spec(
         PAPER_M_CR,
-        parse=_parse_matrix4,
+        parse=parse_matrix4,
         doc="camera-in-head transform M_cr (paper eq. 14), rows, millimetres",
     )
     pan_min_rad: float = spec(
@@ -273,7 +186,7 @@ class CameraConfig:
     """The camera: where frames come from and the intrinsics of Table 1."""
 
     source: str | int = spec(
-        "sim", parse=_parse_source, doc='"sim", a device index, a video file or a URL'
+        "sim", parse=parse_source, doc='"sim", a device index, a video file or a URL'
     )
     width: int = spec(640, lo=1, hi=16384, doc="frame width, pixels")
     height: int = spec(480, lo=1, hi=16384, doc="frame height, pixels")
@@ -303,7 +216,7 @@ class ModelConfig:
     path: str = spec("builtin:manipulator", doc='workpiece model file or "builtin:manipulator"')
     position_mm: tuple[float, float, float] = spec(
         (0.0, 0.0, 0.0),
-        parse=_parse_vector3,
+        parse=parse_vector3,
         doc="x, y, z of the workpiece frame's origin in the world (track) frame",
     )
     yaw_rad: float = spec(
@@ -331,11 +244,11 @@ class FreedConfig:
 
     enabled: bool = spec(False, doc="switch this part on")
     destinations: tuple[str, ...] = spec(
-        ("127.0.0.1:40000",), parse=_parse_destination, each=True, doc='UDP "host:port" receivers'
+        ("127.0.0.1:40000",), parse=parse_destination, each=True, doc='UDP "host:port" receivers'
     )
     camera_id: int = spec(1, lo=0, hi=255, doc="FreeD camera id byte")
     origin_mm: tuple[float, float, float] = spec(
-        (0.0, 0.0, 0.0), parse=_parse_vector3, doc="FreeD origin in our world frame"
+        (0.0, 0.0, 0.0), parse=parse_vector3, doc="FreeD origin in our world frame"
     )
     yaw_rad: float = spec(
         0.0,
@@ -361,7 +274,7 @@ class ControlConfig:
     """The control socket and its optional TCP listener."""
 
     socket_path: str = spec("/run/orbitar/control.sock", doc="Unix control socket")
-    socket_mode: int = spec(0o660, parse=_parse_mode, doc="permissions of the socket file")
+    socket_mode: int = spec(0o660, parse=parse_mode, doc="permissions of the socket file")
     socket_group: str = spec("", doc="group owning the socket file (empty: the daemon's group)")
     tcp_enabled: bool = spec(False, doc="also listen on TCP (needs a token in the hello request)")
     tcp_host: str = spec("127.0.0.1", doc="TCP listen address")

@@ -18,7 +18,8 @@ import sys
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from host.config import Config, ConfigError, default_config_text, load_config
+from host.config import Config, default_config_text, load_config
+from host.config_fields import ConfigError
 from host.control.client import ControlClient, ControlRequestError
 from host.recording.replay import add_parser as add_replay_parser
 from host.service import main as daemon_cmd

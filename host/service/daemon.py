@@ -18,7 +18,8 @@ from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
-from host.config import Config, ConfigError, load_config
+from host.config import Config, load_config
+from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext
 from host.control.server import ControlServer, ControlServerError

@@ -10,7 +10,8 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from host.config import Config, ConfigError, load_config
+from host.config import Config, load_config
+from host.config_fields import ConfigError
 from host.control.api import ControllerLike, PoseSink
 from host.control.fake import FakeController, FakeFrameLoop
 from host.service import wiring

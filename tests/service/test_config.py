@@ -10,11 +10,11 @@ import pytest
 from host.config import (
     PAPER_M_CR,
     Config,
-    ConfigError,
     default_config_text,
     load_config,
     loads_config,
 )
+from host.config_fields import ConfigError
 
 
 def problems(text: str) -> list[str]:
