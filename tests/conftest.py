@@ -1,9 +1,11 @@
-"""Test hygiene shared by every test: no asyncio task or timer may outlive its test."""
+"""Test hygiene: no asyncio task or timer may outlive its test; thread checks on request."""
 
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
 
 import pytest
 
@@ -22,3 +24,27 @@ async def _no_leftover_tasks() -> AsyncIterator[None]:
         task.cancel()
     assert not leftover, f"test left tasks running: {leftover}"
     assert not timers, f"test left timers scheduled: {timers}"
+
+
+THREAD_GRACE_S = 1.0  # for joins to finish
+
+
+def _foreign_threads(before: set[threading.Thread]) -> list[threading.Thread]:
+    """Threads started during the test, other than the event loop's executor workers."""
+    return [
+        t
+        for t in threading.enumerate()
+        if t not in before and t.is_alive() and not t.name.startswith(("asyncio_", "ThreadPool"))
+    ]
+
+
+@pytest.fixture
+def no_leftover_threads() -> Iterator[None]:
+    """Fail a test that leaves a thread running (after a short grace for joins)."""
+    before = set(threading.enumerate())
+    yield
+    deadline = time.monotonic() + THREAD_GRACE_S
+    while _foreign_threads(before) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    leftover = _foreign_threads(before)
+    assert not leftover, f"test left threads running: {leftover}"
