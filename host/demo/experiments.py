@@ -8,7 +8,6 @@ the frame loop, as on a real rig; the simulator's ground truth arrives only insi
 from __future__ import annotations
 
 import asyncio
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -199,7 +198,7 @@ async def moving_experiment(
     """§5.3: the workpiece moves along X, the camera follows at the same speed; R of eq. 15."""
     centroid = bench.model.vertices.mean(axis=0)
     await bench.move(start_s, plan.travel_speed_mm_s)
-    await bench.aim(start_s, (robot.pose(0) @ np.append(centroid, 1.0))[:3])
+    await bench.aim(start_s, (robot.pose_at_ns(0) @ np.append(centroid, 1.0))[:3])
     progress("moving: tracking the robot", 0.0)
     loop = asyncio.get_running_loop()
     robot.start(loop.time())
@@ -218,7 +217,6 @@ async def moving_experiment(
         await motion.done(timeout_s=10.0 + 2.0 * plan.moving_length_mm / plan.moving_speed_mm_s)
     finally:
         bench.collector.sink = None
-    robot.stop()
     picks = np.linspace(0, len(collected) - 1, min(plan.moving_samples, len(collected)))
     samples = [collected[round(k)] for k in picks] if collected else []
     errors = [sc.error_mm for sc in samples]
@@ -311,16 +309,11 @@ class MovingRobot:
     direction_w: FloatArray
     speed_mm_s: float
     length_mm: float
-    _t0: float | None = None
-    _t_stop: float | None = None
-    _clock: Callable[[], float] = field(default=lambda: math.nan)
+    _t0: float | None = None  # when it set off, host monotonic seconds
 
     def start(self, t0: float) -> None:
-        """Set off now (loop time)."""
+        """Set off at t0 (the event loop's clock, which is time.monotonic)."""
         self._t0 = t0
-
-    def stop(self) -> None:
-        """Park the robot where it is (it stops at length_mm anyway)."""
 
     def pose_at_ns(self, t_ns: int) -> FloatArray:
         """T_w_p at a host monotonic time."""
@@ -328,7 +321,3 @@ class MovingRobot:
             return self.start_pose
         travel = min(max(0.0, t_ns / 1e9 - self._t0) * self.speed_mm_s, self.length_mm)
         return make_T(self.start_pose[:3, :3], self.start_pose[:3, 3] + travel * self.direction_w)
-
-    def pose(self, t_ns: int) -> FloatArray:
-        """Alias used before the start."""
-        return self.pose_at_ns(t_ns)
