@@ -207,7 +207,7 @@ def main(args: Any) -> int:
 
     try:
         results = asyncio.run(run_demo(args.link, args.quick, args.out, args.seed))
-    except (LinkError, MotionFailed) as exc:
+    except (LinkError, MotionFailed, TimeoutError) as exc:
         print(f"orbitar demo: the run stopped: {exc}", file=sys.stderr)
         return 1
     print(summary_text(results))
