@@ -208,7 +208,7 @@ def main(args: Any) -> int:
     try:
         results = asyncio.run(run_demo(args.link, args.quick, args.out, args.seed))
     except (LinkError, MotionFailed, TimeoutError) as exc:
-        print(f"orbitar demo: the run stopped: {exc}", file=sys.stderr)
+        print(f"orbitar demo: the run stopped: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
     print(summary_text(results))
     print(f"Report: {results['report']}")
