@@ -27,6 +27,8 @@ from host.geometry.transforms import FloatArray
 FirmwareBytes = Callable[[bytes], None]
 MAX_CATCHUP_TICKS = 200  # after a stall, run at most this many ticks before yielding
 MIN_SLEEP_NS = 20_000  # below this a sleep costs more than it waits: run the next tick now
+MAX_WAKE_LEAD_NS = 300_000  # cap on how early the thread aims to wake (its measured overshoot)
+WAKE_LEAD_GAIN = 1 / 16  # smoothing of the measured overshoot: a GIL stall is one sample of many
 
 
 class Simulation:
@@ -273,9 +275,14 @@ class RealtimeRunner:
 
     def _run(self) -> None:
         """Pace ticks: run those due, then sleep until the next is due."""
+        lead_ns = 0.0  # how late the OS wakes us (timer slack, GIL): aim that much earlier
         while not self._stop.is_set():
-            wait_ns = self.run_due(time.monotonic_ns())
-            if wait_ns >= MIN_SLEEP_NS:
-                # Sleeping to the due time itself (not a fixed slice) keeps the lateness at the
-                # OS timer slack; a stop request waits at most one tick.
-                time.sleep(wait_ns / 1e9)
+            now_ns = time.monotonic_ns()
+            wait_ns = self.run_due(now_ns + round(lead_ns))
+            if wait_ns < MIN_SLEEP_NS:
+                continue
+            # Each tick's output leaves when it runs and carries the time it was due: waking late
+            # by the OS overshoot would delay every reply past its own stamp, a clock-sync bias.
+            time.sleep(wait_ns / 1e9)
+            overshoot_ns = min(time.monotonic_ns() - now_ns - wait_ns, MAX_WAKE_LEAD_NS)
+            lead_ns += WAKE_LEAD_GAIN * (overshoot_ns - lead_ns)

@@ -8,12 +8,15 @@ import time
 
 import pytest
 
+from firmware.config import TICK_US
 from hil_sim.client import FrameClient
-from hil_sim.runner import RealtimeRunner, SimLinkPort, Simulation
+from hil_sim.runner import MAX_CATCHUP_TICKS, RealtimeRunner, SimLinkPort, Simulation
 from hil_sim.scenario import ClockConfig, Scenario, TrackConfig
 from protocol import Flag, FrameDecoder, Inputs, Packet, Stream, encode_frame
 from protocol.messages import (
     Ack,
+    ClockSync,
+    ClockSyncReply,
     EncoderSample,
     HeadSample,
     HeadSet,
@@ -163,3 +166,58 @@ def test_trolley_pose_follows_the_true_arc_length_on_the_runway() -> None:
     assert T[2, 3] == pytest.approx(4000.0)  # 4 m above the floor
     sim.inject_tooth_skip(1)
     assert sim.trolley_pose()[:3, 3] - T[:3, 3] == pytest.approx([12.7, 0.0, 0.0], abs=1e-6)
+
+
+def _paced(sim: Simulation) -> tuple[RealtimeRunner, list[tuple[int, bytes]], list[int]]:
+    """A runner driven by a fake clock; firmware bytes are logged with the fake time they left."""
+    port = SimLinkPort()
+    now = [FAKE_EPOCH_NS]
+    sent: list[tuple[int, bytes]] = []
+    port.set_receiver(lambda data: sent.append((now[0], data)))
+    return RealtimeRunner(sim, port=port), sent, now
+
+
+FAKE_EPOCH_NS = 5_000_000_000_000
+
+
+def test_a_clock_sync_reply_leaves_within_a_tick_of_its_stamp() -> None:
+    sim = Simulation()
+    mcu0_us = sim.mcu_time_us
+    runner, sent, now = _paced(sim)
+    tick_ns = sim.dt_s * 1e9
+    runner.run_due(now[0])
+    written_ns = 0
+    for step in range(1, 41):  # ten ticks, paced in quarter ticks
+        now[0] = FAKE_EPOCH_NS + round(step * tick_ns / 4)
+        runner.run_due(now[0])
+        if step == 21:  # between two ticks: the next tick to run answers it
+            written_ns = now[0] + 1
+            runner.port.write_to_firmware(encode_frame(ClockSync(token=77), 9))
+    replies = [
+        (left_ns, p.message)
+        for left_ns, data in sent
+        for p in FrameDecoder().feed(data)
+        if isinstance(p.message, ClockSyncReply)
+    ]
+    assert len(replies) == 1
+    left_ns, reply = replies[0]
+    # The stamp's tick was due at this host time (ticks are paced from the epoch).
+    stamp_ns = FAKE_EPOCH_NS + (reply.mcu_time_us - mcu0_us) // TICK_US * tick_ns
+    assert reply.token == 77
+    assert written_ns < stamp_ns <= left_ns
+    # A reply leaving a tick after its stamp biases the host's clock mapping by that much.
+    assert left_ns - stamp_ns < tick_ns / 4 + 1
+
+
+def test_run_due_runs_the_tick_due_now_and_bounds_the_catch_up() -> None:
+    sim = Simulation()
+    runner, _, now = _paced(sim)
+    tick_ns = sim.dt_s * 1e9
+    assert runner.run_due(now[0]) == pytest.approx(tick_ns, abs=1)
+    assert sim.ticks == 1  # tick 0 is due at the epoch itself
+    assert runner.run_due(now[0] + round(tick_ns) - 10) == pytest.approx(10, abs=1)
+    assert sim.ticks == 1
+    wait_ns = runner.run_due(now[0] + round(500.5 * tick_ns))
+    assert sim.ticks == 1 + MAX_CATCHUP_TICKS
+    assert runner.late_ticks == 500 - 1
+    assert wait_ns < 0  # behind: the thread runs the rest without sleeping
