@@ -259,6 +259,7 @@ async def drift_experiment(
             motion.done(timeout_s=10.0 + 2.0 * plan.loop_length_mm / plan.loop_speed_mm_s)
         )
         injected = 0
+        skip_s: list[float] = []  # true positions of the injected skips (scoring only)
         clock_errors_us: list[float] = []
         while not finished.done():
             await asyncio.wait({finished}, timeout=0.05)
@@ -268,7 +269,7 @@ async def drift_experiment(
                 (bench.feed.last_enc_mm or 0.0) / (start_enc + plan.loop_length_mm),
             )
             if injected < len(skips) and (bench.feed.last_enc_mm or 0.0) >= skips[injected]:
-                world.with_truth(lambda sim: sim.inject_tooth_skip(1))
+                skip_s.append(world.with_truth(_skip_tooth))
                 injected += 1
         await finished
     finally:
@@ -282,12 +283,35 @@ async def drift_experiment(
         "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),
         "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
         "fused_px": summary([sc.error_px for sc in fused_scores]),
+        # A skip is invisible until the next mark; this separates that from the rest.
+        "fused_px_outside_skip_windows": summary(
+            [
+                sc.error_px
+                for sc in fused_scores
+                if not _in_skip_window(sc.s_true_mm, skip_s, bench.feed.marks_mm)
+            ]
+        ),
         "trace": {
             "s_mm": [sc.s_true_mm for sc in raw_scores],
             "encoder_only_px": [sc.error_px for sc in raw_scores],
             "fused_px": [sc.error_px for sc in fused_scores],
         },
     }
+
+
+def _skip_tooth(sim: Simulation) -> float:
+    """Inject one tooth skip; return where it happened (true arc length)."""
+    sim.inject_tooth_skip(1)
+    return sim.truth().s_mm
+
+
+def _in_skip_window(s_mm: float, skips_mm: list[float], marks_mm: tuple[float, ...]) -> bool:
+    """Whether s lies between an injected skip and the next reference mark after it."""
+    for skip in skips_mm:
+        following = [m for m in marks_mm if m > skip]
+        if skip <= s_mm < (min(following) if following else float("inf")):
+            return True
+    return False
 
 
 def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:

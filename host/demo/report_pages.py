@@ -99,7 +99,8 @@ def summary_text(results: dict[str, Any]) -> str:
     lines.append(
         f"Drift ({100 * dr['elongation']:.1f} % stretch, {dr['tooth_skips']} tooth skips): "
         f"overlay RMS at 3 m encoder-only {dr['encoder_only_px']['rms']:.2f} px, fused "
-        f"{dr['fused_px']['rms']:.2f} px ({dr['marks_seen']} marks)"
+        f"{dr['fused_px']['rms']:.2f} px ({dr['marks_seen']} marks); fused outside the "
+        f"skip-to-next-mark windows {dr['fused_px_outside_skip_windows']['rms']:.2f} px"
     )
     lines.append(
         f"Clock sync error during the loop: median {dr['clock_sync_error_us']['mean']:.0f} µs, "
@@ -206,6 +207,12 @@ def write_report(
                 dr["encoder_only_px"]["mean"],
             ],
             ["fused", dr["fused_px"]["rms"], dr["fused_px"]["max"], dr["fused_px"]["mean"]],
+            [
+                "fused, outside skip-to-next-mark windows",
+                dr["fused_px_outside_skip_windows"]["rms"],
+                dr["fused_px_outside_skip_windows"]["max"],
+                dr["fused_px_outside_skip_windows"]["mean"],
+            ],
         ],
     )
     rep.add_figure("Overlay error against track position", _drift_figure(results))

@@ -65,6 +65,10 @@ def test_fused_registration_beats_encoder_only_under_elongation(
     assert dr["encoder_only_px"]["max"] > 0.5 * end_drift_px
     assert dr["marks_seen"] >= 2
     assert dr["fused_px"]["rms"] < dr["encoder_only_px"]["rms"] / 5
+    # Away from the skip windows only sensor resolution and 1 ms of timing remain.
+    timing_mm = plan.loop_speed_mm_s * 1e-3
+    bound_px = (_static_bound_mm() + timing_mm) * CAMERA.fx / 3000.0
+    assert dr["fused_px_outside_skip_windows"]["rms"] < bound_px
 
 
 def test_report_files_exist_and_parse(demo: tuple[dict[str, Any], Path]) -> None:
