@@ -61,6 +61,8 @@ _CHECKS: dict[int, tuple[tuple[str, int, int], ...]] = {
 
 
 _HELLO_ID = SCHEMA.by_cls[m.Hello].id
+# Stopping is always allowed: a stale STOP or ESTOP replayed after a reboot does no harm.
+_SAFE_BEFORE_HELLO = frozenset(SCHEMA.by_cls[c].id for c in (m.Stop, m.Estop))
 
 
 def handle(fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
@@ -71,6 +73,12 @@ def handle(fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
         # A (re)starting host may reuse old seqs: forget every reply before answering (PROTOCOL
         # §6). HELLO itself is idempotent, so a retransmitted HELLO is simply answered again.
         fw.replies.clear()
+        fw.hello_seen = True
+    elif acked and not fw.hello_seen and msg_id not in _SAFE_BEFORE_HELLO:
+        # After a reboot the reply cache is empty: a retransmission from before the reboot would
+        # run a second time. Refuse until the host has noticed the reboot and said HELLO.
+        fw.tx.send(_nak(fw, seq, NakCode.HELLO_REQUIRED), reply=True)
+        return
     if acked:
         cached = fw.replies.lookup(seq, body)
         if cached is not None:

@@ -82,6 +82,7 @@ class Firmware:
     switches: int
     index_latch: int | None  # index position this tick, extended counter coordinates
     index_seen: bool
+    hello_seen: bool  # a HELLO since boot: until then acked commands other than stops are refused
     watchdog_armed: bool
     last_rx_tick: int
     _last_tx_tick: int  # when the controller last sent anything (heartbeat when idle)
@@ -242,6 +243,7 @@ class Firmware:
         self.switches = 0
         self.index_latch = None
         self.index_seen = False
+        self.hello_seen = False
         self.watchdog_armed = False
         self.last_rx_tick = 0
         self._frames_seen = self.counters.frames_in

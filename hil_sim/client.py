@@ -10,8 +10,16 @@ from __future__ import annotations
 from typing import TypeVar
 
 from hil_sim.runner import Simulation
-from protocol import Flag, FrameDecoder, Packet, encode_frame, spec_of
-from protocol.messages import Heartbeat
+from protocol import (
+    PROTOCOL_VERSION,
+    SCHEMA_HASH,
+    Flag,
+    FrameDecoder,
+    Packet,
+    encode_frame,
+    spec_of,
+)
+from protocol.messages import Heartbeat, Hello
 
 REPLY_FIELD = "req_seq"
 MessageT = TypeVar("MessageT")
@@ -20,11 +28,13 @@ MessageT = TypeVar("MessageT")
 class FrameClient:
     """Talks to a lockstep Simulation through its link bytes."""
 
-    def __init__(self, sim: Simulation) -> None:
+    def __init__(self, sim: Simulation, handshake: bool = True) -> None:
         self.sim = sim
         self.seq = 0
         self.decoder = FrameDecoder()
         self.received: list[Packet] = []  # every packet, replies and telemetry, in order
+        if handshake:  # the controller refuses commands until a HELLO, as on the real link
+            self.request(Hello(PROTOCOL_VERSION, SCHEMA_HASH))
 
     def send(self, msg: object, flags: int | None = None, seq: int | None = None) -> int:
         """Encode and send a message; ACK_REQUESTED when the schema says acked. Returns its seq."""

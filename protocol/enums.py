@@ -42,6 +42,7 @@ class NakCode(enum.IntEnum):
     UNKNOWN_PARAM = 7  # no parameter with that id
     FLASH_ERROR = 8  # persisting the parameters failed
     BUSY = 9  # the receive window is full
+    HELLO_REQUIRED = 10  # no HELLO since the controller booted: handshake, then resend
 
 
 class Stream(enum.IntEnum):

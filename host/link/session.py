@@ -431,6 +431,9 @@ class Session:
                 entry.name, enum_or_int(NakCode, msg.code), enum_or_int(State, msg.state)
             )
             entry.future.set_exception(exc)
+            if msg.code == NakCode.HELLO_REQUIRED:
+                # The controller rebooted since our HELLO: the supervisor re-handshakes.
+                self._emit(LinkEvent.RESET_SUSPECTED, "controller asks for HELLO (it rebooted)")
             return
         if spec_of(msg).name != entry.reply_name:
             self.stats.unexpected_replies += 1

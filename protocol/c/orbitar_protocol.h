@@ -60,7 +60,8 @@ typedef enum {
     ORB_NAK_CODE_BEYOND_LIMIT = 6,
     ORB_NAK_CODE_UNKNOWN_PARAM = 7,
     ORB_NAK_CODE_FLASH_ERROR = 8,
-    ORB_NAK_CODE_BUSY = 9
+    ORB_NAK_CODE_BUSY = 9,
+    ORB_NAK_CODE_HELLO_REQUIRED = 10
 } orb_nak_code_t;
 
 typedef enum {
@@ -761,7 +762,7 @@ static inline int orb_nak_decode(orb_nak_t *m, const uint8_t *buf, size_t len)
 static inline int orb_nak_in_range(const orb_nak_t *m)
 {
     return m->code >= UINT32_C(1) &&
-           m->code <= UINT32_C(9) &&
+           m->code <= UINT32_C(10) &&
            m->state <= UINT32_C(6);
 }
 

@@ -44,9 +44,10 @@ def wait_reply(client: FrameClient, seq: int) -> object:
 
 
 def test_hello_answers_identify_with_the_rig_constants(rig: Rig) -> None:
-    reply = rig.client.request(Hello(1, 0xDEAD))
+    seq = rig.client.send(Hello(1, 0xDEAD))
+    reply = rig.client.wait_reply(seq)
     assert isinstance(reply, Identify)
-    assert reply.req_seq == 0
+    assert reply.req_seq == seq
     assert (reply.encoder_counts_per_rev, reply.steps_per_rev) == (4000, 3200)
     assert (reply.sprocket_teeth, reply.chain_pitch_um) == (20, 12_700)
     assert (reply.mcu_clock_hz, reply.max_frame, reply.rx_window) == (1_000_000, 84, 8)
@@ -217,3 +218,19 @@ def test_hello_forgets_replies_so_a_restarted_host_reusing_seqs_is_obeyed() -> N
     replies = [p.message for p in client.run(5)]
     assert any(isinstance(r, Identify) for r in replies)
     assert sim.firmware.params.values[1] == 700  # executed, not answered from the old cache
+
+
+def test_commands_before_hello_are_refused_except_stops() -> None:
+    """After a boot only HELLO, STOP and ESTOP are accepted: nothing stale runs twice."""
+    from hil_sim.client import FrameClient
+    from hil_sim.runner import Simulation
+    from protocol.messages import Estop, Nak, ParamSet, Stop
+
+    sim = Simulation()
+    client = FrameClient(sim, handshake=False)
+    refused = client.request(ParamSet(1, 700))
+    assert isinstance(refused, Nak)
+    assert refused.code == NakCode.HELLO_REQUIRED
+    assert sim.firmware.params.values[1] != 700
+    assert isinstance(client.request(Stop()), Ack)
+    assert isinstance(client.request(Estop()), Ack)

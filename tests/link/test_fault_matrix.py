@@ -32,7 +32,15 @@ from hil_sim.links.pty_uart import PtyUart
 from hil_sim.links.xbee import CONTROLLER_ADDR64, XBeeModule
 from hil_sim.runner import RealtimeRunner, Simulation
 from hil_sim.scenario import Scenario
-from host.link import BackoffConfig, CommandTimeout, Controller, LinkDown, LinkEvent, SessionConfig
+from host.link import (
+    BackoffConfig,
+    CommandTimeout,
+    Controller,
+    ControllerRejected,
+    LinkDown,
+    LinkEvent,
+    SessionConfig,
+)
 from host.link.common import LinkState
 from host.link.session import SEQ_RESTART_BELOW, SEQ_RESTART_MIN_JUMP
 from host.transport import Transport, create_transport
@@ -408,7 +416,7 @@ async def run_matrix(rig: Rig, n: int) -> list[Outcome]:
 
 
 class ReplayedAcrossRebootError(AssertionError):
-    """A command ran again on a rebooted controller (see the xfail repro at the end)."""
+    """A command ran again on a rebooted controller (see the repro at the end)."""
 
 
 def check_outcomes(rig: Rig, outcomes: list[Outcome], n: int) -> list[str]:
@@ -505,11 +513,6 @@ class FaultMatrix:
             runner.stop()
             loop.set_exception_handler(handler)
 
-    @pytest.mark.xfail(
-        raises=ReplayedAcrossRebootError,
-        strict=False,
-        reason="known firmware gap: a stale retransmission runs again after a reboot",
-    )
     @pytest.mark.parametrize(
         "n",
         [
@@ -541,15 +544,9 @@ class TestCanVirtual(FaultMatrix):
     link_cls = CanLink
 
 
-# ---- what the matrix found, pinned down -------------------------------------------------
+# ---- what the matrix found (fixed: the controller requires HELLO after every boot) --------
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="firmware executes acked commands before any HELLO after a reboot; a stale "
-    "retransmission of an already acked command then runs again on the new boot",
-)
 def test_stale_retransmission_is_not_executed_after_reboot() -> None:
     """Seen in the XBee matrix: a retransmission still in the air when the controller resets."""
     sim = Simulation(Scenario(seed=3))
@@ -571,12 +568,6 @@ def test_stale_retransmission_is_not_executed_after_reboot() -> None:
     assert sim.firmware.params.values[pid] == default  # not executed a second time
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="host.link.session detects a restarted controller seq only after 256+ frames, and "
-    "the controller sends no heartbeat while busy: an early reset goes unnoticed",
-)
 async def test_early_reset_is_noticed() -> None:
     """A controller reset before it sent 256 frames: commands keep being acked, no reset event."""
     bridge = SimBridge()
@@ -589,7 +580,7 @@ async def test_early_reset_is_noticed() -> None:
         bridge.sim.reset_controller()
         async with asyncio.timeout(5.0):
             for value in range(2_000, 2_050):
-                with contextlib.suppress(LinkDown):
+                with contextlib.suppress(LinkDown, ControllerRejected):  # HELLO_REQUIRED
                     await ctrl.set_param(ParamId.MAX_SPEED_UM_S, value)
                 if LinkEvent.CONTROLLER_RESET in events:
                     break
