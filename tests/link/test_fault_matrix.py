@@ -474,7 +474,14 @@ def check_statistics(rig: Rig) -> dict[str, int]:
         **{k: v for k, v in rig.ctrl.transport.stats.extra.items() if k.startswith("can_")},
     }
     print(f"\n{rig.link.name}: " + ", ".join(f"{k} {v}" for k, v in figures.items()))
-    assert abs(stats.rx_lost - expected_gaps) <= max(5, 0.2 * expected_gaps), figures
+    # On CAN the emulator's jitter delays each 8-byte segment on its own, so segments can
+    # arrive out of order (a real bus never reorders); each such segment or stale partial can
+    # cost one more frame than was injected.
+    reorder_losses = figures.get("can_reordered", 0) + figures.get("can_timeouts", 0)
+    # Frames in flight when the link is unplugged or the controller resets are lost without
+    # the injector counting them: a few per event, hence the absolute floor.
+    slack = max(10, 0.25 * expected_gaps)
+    assert -slack <= stats.rx_lost - expected_gaps <= slack + reorder_losses, figures
     assert abs(stats.drops.total() - corrupted) <= max(3, 0.3 * corrupted), figures
     return figures
 
