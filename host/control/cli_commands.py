@@ -21,8 +21,8 @@ from typing import Any, TextIO
 from host.config import Config, default_config_text, load_config
 from host.config_fields import ConfigError
 from host.control.client import ControlClient, ControlRequestError
-from host.recording.replay import add_parser as add_replay_parser
 from host.service import main as daemon_cmd
+from host.service.replay_registration import add_parser as add_replay_parser
 from host.service.unit import DEFAULT_CONFIG, render_unit
 
 SOCKET_ENV = "ORBITAR_SOCKET"

@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import argparse
-import sys
 from collections import Counter
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from host.recording.reader import Record, RecordingError, RecordingReader
+from host.recording.reader import Record, RecordingReader
 
 ReplayCallback = Callable[[Record], Any]
 SAMPLE_KINDS = frozenset({"link", "encoder", "head", "frame", "pose", "event"})
@@ -55,25 +53,3 @@ def replay(
     stats.corrupt_files = reader.corrupt_files
     stats.bad_records = reader.bad_records
     return stats
-
-
-def add_parser(subparsers: Any) -> None:
-    """`orbitar replay FILE…`."""
-    parser = subparsers.add_parser("replay", help="re-run recorded samples and print a summary")
-    parser.add_argument("files", nargs="+", help="recording files or directories")
-    parser.set_defaults(handler=run)
-
-
-def run(args: argparse.Namespace, callback: ReplayCallback | None = None) -> int:
-    """Replay through `callback` (the lead plugs the registration in) and print what was seen."""
-    try:
-        stats = replay(args.files, callback or (lambda record: None))
-    except (RecordingError, OSError) as exc:
-        print(f"orbitar replay: {exc}", file=sys.stderr)
-        return 1
-    for kind, count in sorted(stats.by_kind.items()):
-        print(f"{kind}: {count}")
-    print(f"records: {stats.records}")
-    print(f"truncated_bytes: {stats.truncated_bytes}")
-    print(f"corrupt_files: {stats.corrupt_files}")
-    return 0

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import msgpack
@@ -10,7 +9,6 @@ import pytest
 
 from host.recording import RecordingReader, RecordingWriter, replay
 from host.recording.reader import Record, RecordingError
-from host.recording.replay import run as run_replay
 
 
 def write_samples(directory: Path, n: int, **kw: object) -> RecordingWriter:
@@ -95,17 +93,6 @@ def test_replay_is_deterministic_and_filters_kinds(tmp_path: Path) -> None:
     assert first.results[3] == (3000, 6)
     assert first.by_kind == {"encoder": 20}
     assert first.out_of_order == 0
-
-
-def test_replay_cli_prints_counts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    write_samples(tmp_path, 4)
-    assert run_replay(argparse.Namespace(files=[str(tmp_path)])) == 0
-    out = capsys.readouterr().out
-    assert "encoder: 4" in out
-    assert "frame: 4" in out
-    bad = tmp_path / "bad.orec"
-    bad.write_bytes(msgpack.packb({"k": "oops"}))
-    assert run_replay(argparse.Namespace(files=[str(bad)])) == 1
 
 
 def test_writer_on_unwritable_directory_raises_at_open(tmp_path: Path) -> None:
