@@ -238,7 +238,7 @@ async def drift_experiment(
     world.with_truth(lambda sim: sim.set_elongation(plan.elongation))
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
-    bench.feed.reset(survey_home(bench, world))
+    bench.feed.set_home(survey_home(bench, world))
     start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
     raw_scores: list[Score] = []
     fused_scores: list[Score] = []

@@ -1,10 +1,8 @@
-"""Pose buffers fed by the controller link: encoder-only (the paper) and drift-corrected.
+"""The demo's two registrations side by side, both on the daemon's own `PoseFeed`.
 
-Both are sample sinks of `host.link.Controller`. The encoder-only feed maps the controller's
-position (mm from home) onto the track by the surveyed home position; the fused feed also
-runs the chain filter on absolute reference marks and pushes the corrected arc length into its
-own buffer. Marks arrive as REF_MARK messages carrying the encoder count captured at the
-mark's edge, so a reference is as precise as one encoder count.
+The encoder-only feed is the paper's method; the corrected feed also runs the chain filter on
+the REF_MARK captures (the encoder count at each mark's edge). One sink fans the controller's
+samples out to both, so they see exactly the same data.
 """
 
 from __future__ import annotations
@@ -13,51 +11,89 @@ from dataclasses import dataclass, field
 
 from host.fusion.chain_filter import ChainFilter
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
+from host.registration.track_feed import PoseFeed
 
 ENCODER_CAPACITY = 8192  # 16 s at 500 Hz
 HEAD_CAPACITY = 2048
 
 
+def _feed(marks_mm: tuple[float, ...], pitch_mm: float) -> PoseFeed:
+    """A PoseFeed with buffers sized for the demo's longest lookups."""
+    return PoseFeed(
+        SampleBuffer(1, ENCODER_CAPACITY),
+        AngleBuffer(2, HEAD_CAPACITY),
+        marks_mm=marks_mm,
+        pitch_mm=lambda: pitch_mm,
+    )
+
+
 @dataclass
 class TrackFeed:
-    """Encoder and head samples into pose buffers, raw and fused."""
+    """Encoder-only and drift-corrected pose buffers fed from one controller."""
 
-    home_s_mm: float = 0.0  # track arc length of the controller's zero (installation survey)
     marks_mm: tuple[float, ...] = ()
-    chain: ChainFilter = field(default_factory=ChainFilter)
-    raw: SampleBuffer = field(default_factory=lambda: SampleBuffer(1, ENCODER_CAPACITY))
-    fused: SampleBuffer = field(default_factory=lambda: SampleBuffer(1, ENCODER_CAPACITY))
-    head: AngleBuffer = field(default_factory=lambda: AngleBuffer(2, HEAD_CAPACITY))
-    last_enc_mm: float | None = None
-    marks_seen: int = 0
+    pitch_mm: float = 12.7
+    encoder_only: PoseFeed = field(init=False)
+    corrected: PoseFeed = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.encoder_only = _feed((), self.pitch_mm)
+        self.corrected = _feed(self.marks_mm, self.pitch_mm)
+
+    @property
+    def raw(self) -> SampleBuffer:
+        """The paper's registration: encoder arc length only."""
+        return self.encoder_only.encoder
+
+    @property
+    def fused(self) -> SampleBuffer:
+        """Arc length corrected by the chain filter."""
+        return self.corrected.encoder
+
+    @property
+    def head(self) -> AngleBuffer:
+        """Head angles (the same samples reach both feeds)."""
+        return self.encoder_only.head
+
+    @property
+    def home_s_mm(self) -> float:
+        """Track arc length of the controller's zero (the installation survey)."""
+        return self.encoder_only.home_s_mm
+
+    @property
+    def last_enc_mm(self) -> float | None:
+        """Latest encoder-only track position."""
+        return self.encoder_only.raw_s_mm
+
+    @property
+    def chain(self) -> ChainFilter:
+        """The corrected feed's filter (the demo always has marks)."""
+        assert self.corrected.chain is not None
+        return self.corrected.chain
+
+    @property
+    def marks_seen(self) -> int:
+        """Marks the filter took as references."""
+        return self.chain.stats.updates
+
+    def set_home(self, home_s_mm: float) -> None:
+        """After (re)homing: the surveyed home, fresh buffers and filter."""
+        self.encoder_only.rehome(home_s_mm)
+        self.corrected.rehome(home_s_mm)
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
-        """One encoder sample (controller mm from home) → both buffers."""
-        enc = self.home_s_mm + s_mm
-        self.last_enc_mm = enc
-        self.chain.predict(enc)
-        self.raw.push(t_host_ns, [enc])
-        self.fused.push(t_host_ns, [self.chain.estimate(enc)[0]])
+        """To both feeds."""
+        self.encoder_only.on_encoder(t_host_ns, s_mm, velocity_mm_s, inputs)
+        self.corrected.on_encoder(t_host_ns, s_mm, velocity_mm_s, inputs)
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
-        """One head sample."""
-        self.head.push(t_host_ns, [pan_rad, tilt_rad])
+        """To both feeds."""
+        self.encoder_only.on_head(t_host_ns, pan_rad, tilt_rad)
+        self.corrected.on_head(t_host_ns, pan_rad, tilt_rad)
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """Rangefinder samples are not used by the registration loop."""
+        """Not used by the registration."""
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
-        """A reference mark's captured encoder position: associate it, update the filter."""
-        enc_mm = self.home_s_mm + s_mm
-        mark = self.chain.associate(enc_mm, self.marks_mm)
-        if mark is not None:
-            self.chain.reference(enc_mm, mark)
-            self.marks_seen += 1
-
-    def reset(self, home_s_mm: float) -> None:
-        """After (re)homing: new survey offset, fresh filter and buffers."""
-        self.home_s_mm = home_s_mm
-        self.chain = ChainFilter(self.chain.config)
-        self.raw.clear()
-        self.fused.clear()
-        self.last_enc_mm = None
+        """Only the corrected feed uses marks."""
+        self.corrected.on_mark(t_host_ns, s_mm)

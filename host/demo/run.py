@@ -32,7 +32,6 @@ from host.demo.propagation_report import propagation_results
 from host.demo.report_pages import write_report
 from host.demo.world import SimCameraSource, SimWorld
 from host.frames.loop import FrameLoop
-from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import manipulator_wireframe
@@ -129,10 +128,7 @@ async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict
     progress = Progress({"connect": 1, "static": 5, "moving": 2, "drift": 5})
     await world.start()
     ctrl = Controller(world.host_transport())
-    feed = TrackFeed(
-        marks_mm=sc.track.reference_marks_mm,
-        chain=ChainFilter(ChainFilterConfig(chain_pitch_mm=sc.chain.pitch_mm)),
-    )
+    feed = TrackFeed(sc.track.reference_marks_mm, sc.chain.pitch_mm)
     ctrl.add_sink(feed)
     bench = Bench(ctrl, rig, camera, model, feed, workpiece)
     source = SimCameraSource(world, rig, camera, model, workpiece)
@@ -146,7 +142,7 @@ async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
         await start_host(bench, link)
-        feed.reset(survey_home(bench, world))
+        feed.set_home(survey_home(bench, world))
         results["static"] = await static_experiment(bench, plan, START_S_MM, progress)
         phase["static"] = False
         results["moving"] = await moving_experiment(bench, plan, START_S_MM, robot, progress)

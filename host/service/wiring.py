@@ -11,7 +11,6 @@ stream, FreeD and `orbitar watch` work on a rig (or an emulator) that has no cam
 from __future__ import annotations
 
 import asyncio
-import dataclasses
 import logging
 import math
 import time
@@ -25,7 +24,6 @@ from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import FrameSource, VideoCaptureSource
-from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig, orthonormalize_T
 from host.geometry.model import Wireframe, load_model, manipulator_wireframe
@@ -37,10 +35,11 @@ from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD
 from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
+from host.registration.track_feed import PoseFeed
 from host.service.daemon import RecordTap
 from host.transport import Transport, TransportConfigError, create_transport
 from protocol import ParamId
-from protocol.enums import Fault, Inputs, Stream
+from protocol.enums import Fault, Stream
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +59,6 @@ MIN_BUFFER_SAMPLES = 64
 BUILTIN_MODEL = "builtin:manipulator"
 NO_CAMERA_SOURCES = ("none", "sim")  # "sim" frames exist only inside the emulator's process
 FPS_WINDOW_S = 2.0
-DEFAULT_CHAIN_PITCH_MM = 12.7  # ISO 08B / ANSI 40 roller chain, when the controller has not said
 
 
 class WiringError(ValueError):
@@ -294,120 +292,6 @@ def build_model(config: Config) -> Wireframe:
 
 
 # ---- samples → poses -----------------------------------------------------------------------
-
-
-@dataclasses.dataclass
-class PoseFeed:
-    """A `SampleSink` filling the pose buffers: track arc length and head angles.
-
-    The controller reports millimetres from its zero; the feed adds the surveyed `home_s_mm`.
-    With reference marks configured, a `ChainFilter` maps the controller's millimetres to true
-    ones (chain stretch, tooth skips) and the buffer holds the corrected arc length. The filter
-    works relative to home, where its prior holds (the offset is small right after homing), so
-    it starts afresh at every homing and ignores marks while the controller is not homed.
-    """
-
-    encoder: SampleBuffer
-    head: AngleBuffer
-    home_s_mm: float = 0.0  # track arc length of the controller's zero
-    marks_mm: tuple[float, ...] = ()  # surveyed mark positions (track arc length)
-    lap_mm: float | None = None  # closed track: marks recur every lap
-    pitch_mm: Callable[[], float | None] = lambda: None  # the controller's IDENTIFY, if known
-    chain: ChainFilter | None = None
-    raw_s_mm: float | None = None  # latest arc length before correction
-    s_mm: float | None = None  # latest arc length pushed into the buffer
-    marks_seen: int = 0  # REF_MARK events received
-    marks_unhomed: int = 0  # of those, ignored: the controller's zero was not referenced yet
-    homed: bool = False  # Inputs.HOMED of the latest encoder sample
-
-    def __post_init__(self) -> None:
-        if self.marks_mm and self.chain is None:
-            self.chain = ChainFilter(ChainFilterConfig(chain_pitch_mm=self._pitch()))
-
-    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
-        """One encoder sample (controller mm from home) → the buffer, corrected if marks exist."""
-        self._follow_homing(bool(inputs & Inputs.HOMED))
-        self.raw_s_mm = self.home_s_mm + s_mm
-        self.s_mm = self.raw_s_mm
-        if self.chain is not None and self.homed:
-            self.chain.predict(s_mm)
-            self.s_mm = self.home_s_mm + self.chain.estimate(s_mm)[0]
-        self.encoder.push(t_host_ns, [self.s_mm])
-
-    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
-        """One head sample."""
-        self.head.push(t_host_ns, [pan_rad, tilt_rad])
-
-    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """Not used for the pose."""
-
-    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
-        """A mark's captured encoder position: the nearest configured mark is the reference."""
-        self.marks_seen += 1
-        if self.chain is None:
-            return
-        if not self.homed:
-            self.marks_unhomed += 1
-            return
-        self._adopt_controller_pitch()
-        predicted = self.home_s_mm + self.chain.estimate(s_mm)[0]
-        mark = self.chain.associate(s_mm, self._candidates_rel(predicted))
-        if mark is not None:
-            self.chain.reference(s_mm, mark)
-
-    def stats(self) -> dict[str, Any]:
-        """Plain numbers for link statistics: raw and corrected position, the filter's state."""
-        out: dict[str, Any] = {
-            "track_s_mm": _rounded(self.s_mm),
-            "raw_s_mm": _rounded(self.raw_s_mm),
-            "marks_seen": self.marks_seen,
-            "homed": self.homed,
-        }
-        if self.chain is not None:
-            rel_mm = 0.0 if self.raw_s_mm is None else self.raw_s_mm - self.home_s_mm
-            sigma = self.chain.estimate(rel_mm)[1]
-            out.update(
-                chain_scale=round(float(self.chain.x[1]), 7),
-                chain_offset_mm=round(float(self.chain.x[0]), 3),
-                position_sigma_mm=round(sigma, 3),
-                marks_used=self.chain.stats.updates,
-                marks_unhomed=self.marks_unhomed,
-                marks_rejected=self.chain.stats.rejected,
-                marks_unassociated=self.chain.stats.unassociated,
-                skips_detected=self.chain.stats.skips_detected,
-            )
-        return out
-
-    def _follow_homing(self, homed: bool) -> None:
-        """A new homing re-references the encoder: what the filter learned before is void."""
-        if homed and not self.homed and self.chain is not None:
-            self.chain = ChainFilter(self.chain.config)
-        self.homed = homed
-
-    def _pitch(self) -> float:
-        """The controller's chain pitch if it has identified itself, else the nominal 12.7 mm."""
-        return self.pitch_mm() or DEFAULT_CHAIN_PITCH_MM
-
-    def _adopt_controller_pitch(self) -> None:
-        """Until the first reference is taken, follow the pitch the controller reports."""
-        assert self.chain is not None
-        pitch = self._pitch()
-        if self.chain.stats.updates == 0 and pitch != self.chain.config.chain_pitch_mm:
-            config = dataclasses.replace(self.chain.config, chain_pitch_mm=pitch)
-            self.chain = ChainFilter(config)
-
-    def _candidates_rel(self, predicted_s_mm: float) -> tuple[float, ...]:
-        """Mark positions relative to home; on a closed track, in the laps around the prediction."""
-        if not self.lap_mm:
-            return tuple(m - self.home_s_mm for m in self.marks_mm)
-        lap = math.floor(predicted_s_mm / self.lap_mm)
-        shifts = ((lap + k) * self.lap_mm - self.home_s_mm for k in (-1, 0, 1))
-        return tuple(m + shift for shift in shifts for m in self.marks_mm)
-
-
-def _rounded(value: float | None) -> float | None:
-    """Millimetres to the micrometre, or None."""
-    return None if value is None else round(value, 3)
 
 
 def build_pose_source(

@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from host.config import Config, loads_config
+from host.registration.track_feed import DEFAULT_CHAIN_PITCH_MM, PoseFeed
 from host.service.wiring import (
-    DEFAULT_CHAIN_PITCH_MM,
     STREAM_RATES_HZ,
-    PoseFeed,
     PosePublisher,
     build_pose_source,
     controller_factory,
