@@ -80,16 +80,17 @@ class ClockSync:
 
     def extend(self, mcu_ticks_32: int) -> int:
         """Extend a 32-bit counter value to 64 bits, nearest to the latest one seen."""
-        value = mcu_ticks_32 & (WRAP_US - 1)
-        if self._last_ext is None:
-            self._last_ext = value
-            return value
-        delta = (value - self._last_ext) & (WRAP_US - 1)
-        if delta >= HALF_WRAP_US:
-            delta -= WRAP_US  # a sample slightly older than the newest: step back
-        ext = self._last_ext + delta
-        self._last_ext = max(self._last_ext, ext)
+        ext = self._extend_query(mcu_ticks_32)
+        self._last_ext = ext if self._last_ext is None else max(self._last_ext, ext)
         return ext
+
+    def _extend_query(self, mcu_ticks_32: int) -> int:
+        """Like extend(), without moving the reference: for queries that must not change state."""
+        if self._last_ext is None:
+            return mcu_ticks_32 & (WRAP_US - 1)
+        delta = (mcu_ticks_32 - self._last_ext) & (WRAP_US - 1)
+        # Past half the wrap the stamp is slightly older than the newest: step back.
+        return self._last_ext + (delta - WRAP_US if delta >= HALF_WRAP_US else delta)
 
     def add_probe(self, t0_ns: int, mcu_ticks_32: int, t1_ns: int) -> bool:
         """Feed one probe; True if it was used, False if rejected (slow round trip or outlier)."""
@@ -126,7 +127,7 @@ class ClockSync:
     def uncertainty_ns(self, mcu_ticks_32: int | None = None) -> float:
         """One-sigma error of the mapping at that controller time (default: the latest probe)."""
         fit = self._require_fit()
-        x = fit.x_last if mcu_ticks_32 is None else self.extend(mcu_ticks_32)
+        x = fit.x_last if mcu_ticks_32 is None else self._extend_query(mcu_ticks_32)
         dx = x - fit.x0 - fit.mx
         var_slope = fit.unit_var / fit.sxx if fit.sxx > 0.0 else 0.0
         return math.sqrt(fit.unit_var / fit.w + var_slope * dx * dx)

@@ -104,15 +104,22 @@ class XBeeTransport(Transport):
     def _dispatch(self, frame_data: bytes) -> None:
         """One good API frame → receiver or statistics."""
         kind = frame_data[0]
+        if kind not in (FrameType.RECEIVE_PACKET, FrameType.TRANSMIT_STATUS):
+            self.stats.bump("xbee_unknown_type")
+            return
+        # Only parsing is guarded: an error above us is not a short frame and must not hide.
         try:
             if kind == FrameType.RECEIVE_PACKET:
-                self._on_receive(ReceivePacket.parse(frame_data))
-            elif kind == FrameType.TRANSMIT_STATUS:
-                self._on_status(TransmitStatus.parse(frame_data))
+                packet = ReceivePacket.parse(frame_data)
             else:
-                self.stats.bump("xbee_unknown_type")
+                status = TransmitStatus.parse(frame_data)
         except ValueError:
             self.stats.bump("xbee_short_frames")
+            return
+        if kind == FrameType.RECEIVE_PACKET:
+            self._on_receive(packet)
+        else:
+            self._on_status(status)
 
     def _on_receive(self, packet: ReceivePacket) -> None:
         """RF data from the controller's module is one wire frame."""
