@@ -190,6 +190,7 @@ class Session:
         with contextlib.suppress(TransportError):
             self.transport.send(b"\x00")
         self._decoder.reset()
+        self.transport.resync()
         self._rx_seq = _RxSeq()
         self._running = True
         self._last_rx_s = asyncio.get_running_loop().time()

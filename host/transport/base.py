@@ -108,6 +108,15 @@ class Transport(abc.ABC):
         self.stats.frames_out += 1
         self.stats.bytes_out += len(frame)
 
+    def resync(self) -> None:
+        """Forget partial receive state when a session (re)starts; backends with any override.
+
+        A controller that rebooted restarts its own framing state (CAN's segment counter), so a
+        half-received frame from before can never complete and must not block the new ones.
+        Stream backends keep no such state (the session's decoder does): nothing to do.
+        """
+        return
+
     @abc.abstractmethod
     def describe(self) -> str:
         """Human-readable name of the link, e.g. 'serial /dev/ttyUSB0 @115200'."""

@@ -83,10 +83,14 @@ class CanTransport(Transport):
         """E.g. 'can slcan:/dev/pts/3 node 1 @500000'."""
         return f"can {self.interface}:{self.channel} node {self.node_id} @{self.bitrate}"
 
+    def resync(self) -> None:
+        """A restarted controller restarts its segment counter: drop any partial frame."""
+        self._reassembler.reset()
+
     async def _open(self) -> None:
         """Create the bus off the loop (drivers block) and start receiving."""
         loop = asyncio.get_running_loop()
-        self._reassembler.reset()
+        self.resync()
         try:
             bus = await loop.run_in_executor(None, self._make_bus)
         except (can.CanError, ImportError) as exc:
