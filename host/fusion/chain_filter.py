@@ -7,10 +7,13 @@ switch, marks along the track, a rangefinder reading of a known feature. This fi
     s_true = offset + scale · s_encoder
 
 as a two-state Kalman filter over (offset, scale) with process noise per millimetre travelled.
-A reference whose innovation is far outside its gate but close to a whole number of chain
-pitches is taken as a tooth skip: the offset's variance is widened by that jump and the
-measurement applied, so one skip is corrected at the next reference instead of poisoning the
-scale. Other gross outliers are rejected and counted.
+A reference whose innovation is far outside its gate but within a few millimetres of a whole
+number k of chain pitches is taken as a tooth skip: the trolley jumped k true pitches
+(k · pitch · scale), so the offset is moved by exactly that — its uncertainty through the
+scale's — and the reference is then applied as usual. The scale is untouched by the jump, and
+a single stray reading that happens to mimic a skip is undone by the next good one, which then
+looks like the opposite skip. Skips are only decided by references sharp enough to tell one
+pitch from the next. Other gross outliers are rejected and counted.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ FloatArray = NDArray[np.float64]
 
 GATE_SIGMAS = 4.0  # innovations beyond this many σ are not taken at face value
 SKIP_TOLERANCE_MM = 2.0  # how near a whole number of pitches a jump must be to be a skip
+# A reference may call a skip only if its σ (with the prediction's) keeps the tolerance band,
+# widened by GATE_SIGMAS σ, inside half a pitch: otherwise k and k ± 1 pitches both fit.
 
 
 @dataclass(frozen=True)
@@ -80,17 +85,34 @@ class ChainFilter:
         h = np.array([1.0, enc_mm])
         return float(h @ self.x), math.sqrt(max(float(h @ self.p @ h), 0.0))
 
-    def reference(self, enc_mm: float, true_mm: float, sigma_mm: float | None = None) -> bool:
-        """Apply one absolute reference (the encoder read enc_mm at true position true_mm)."""
-        self.predict(enc_mm)
+    def correct(self, enc_mm: FloatArray) -> FloatArray:
+        """True arc lengths for many encoder readings at once (the current estimate)."""
+        out: FloatArray = self.x[0] + self.x[1] * np.asarray(enc_mm, dtype=np.float64)
+        return out
+
+    def reference(
+        self,
+        enc_mm: float,
+        true_mm: float,
+        sigma_mm: float | None = None,
+        advance: bool = True,
+    ) -> bool:
+        """Apply one absolute reference (the encoder read enc_mm at true position true_mm).
+
+        `advance=False` for a reference older than the newest encoder reading: its travel has
+        already been counted by `predict`, and counting it back and forth would inflate it.
+        """
+        if advance:
+            self.predict(enc_mm)
         r = (sigma_mm if sigma_mm is not None else self.config.reference_sigma_mm) ** 2
         h = np.array([1.0, enc_mm])
         innovation = true_mm - float(h @ self.x)
         s = float(h @ self.p @ h) + r
         if innovation**2 > GATE_SIGMAS**2 * s:
-            if not self._accept_skip(innovation):
+            if not self._apply_skip(innovation, s):
                 self.stats.rejected += 1
                 return False
+            innovation = true_mm - float(h @ self.x)
             s = float(h @ self.p @ h) + r
         gain = self.p @ h / s
         self.x = self.x + gain * innovation
@@ -110,16 +132,19 @@ class ChainFilter:
             return None
         return nearest
 
-    def _accept_skip(self, innovation: float) -> bool:
-        """Widen the offset variance when the jump looks like whole tooth skips."""
-        pitch = self.config.chain_pitch_mm
-        teeth = round(innovation / pitch)
-        if teeth == 0 or abs(teeth) > self.config.max_skip_teeth:
+    def _apply_skip(self, innovation: float, s: float) -> bool:
+        """If the jump is whole tooth skips, move the offset by them; else leave all as is."""
+        c = self.config
+        true_pitch = c.chain_pitch_mm * float(self.x[1])
+        teeth = round(innovation / true_pitch)
+        if teeth == 0 or abs(teeth) > c.max_skip_teeth:
             return False
-        if abs(innovation - teeth * pitch) > SKIP_TOLERANCE_MM + GATE_SIGMAS * math.sqrt(
-            self.p[0, 0]
-        ):
+        band = SKIP_TOLERANCE_MM + GATE_SIGMAS * math.sqrt(s)
+        if band >= 0.5 * true_pitch or abs(innovation - teeth * true_pitch) > band:
             return False
-        self.p[0, 0] += innovation**2
+        # offset' = offset + teeth · pitch · scale: shift it, carry the scale's σ into it.
+        jump = np.array([[1.0, teeth * c.chain_pitch_mm], [0.0, 1.0]])
+        self.x = np.array([self.x[0] + teeth * true_pitch, self.x[1]])
+        self.p = jump @ self.p @ jump.T
         self.stats.skips_detected += 1
         return True

@@ -75,3 +75,53 @@ def test_uncertainty_shrinks_with_references() -> None:
     filt.reference(8000.0, 8040.0)
     _, sigma_after = filt.estimate(8000.0)
     assert sigma_after < sigma_before / 10
+
+
+def _settled(scale: float = 1.005) -> ChainFilter:
+    """A filter that has learnt the chain from references every 500 mm over 5 m."""
+    filt = ChainFilter(ChainFilterConfig(chain_pitch_mm=PITCH_MM))
+    for enc in np.arange(0.0, 5000.0, 500.0):
+        assert filt.reference(float(enc), float(enc) * scale)
+    return filt
+
+
+def test_a_skip_moves_the_offset_by_one_true_pitch_and_leaves_the_scale() -> None:
+    filt = _settled()
+    scale_before = float(filt.x[1])
+    enc = 5200.0
+    assert filt.reference(enc, enc * 1.005 + PITCH_MM * 1.005)
+    assert filt.stats.skips_detected == 1
+    assert filt.x[1] == pytest.approx(scale_before, abs=1e-7)
+    assert filt.estimate(6000.0)[0] == pytest.approx(6000.0 * 1.005 + PITCH_MM * 1.005, abs=0.05)
+
+
+def test_a_coarse_reference_cannot_call_a_skip() -> None:
+    filt = _settled()
+    enc = 5200.0
+    # σ 3 mm: one pitch and the next are within 4σ of each other, so this is refused.
+    assert not filt.reference(enc, enc * 1.005 + PITCH_MM * 1.005, sigma_mm=3.0)
+    assert filt.stats.skips_detected == 0
+    assert filt.stats.rejected == 1
+
+
+def test_a_stray_reading_mimicking_a_skip_is_undone_by_the_next_good_one() -> None:
+    filt = _settled()
+    assert filt.reference(5200.0, 5200.0 * 1.005 + PITCH_MM * 1.005, sigma_mm=1.0)
+    assert filt.reference(5210.0, 5210.0 * 1.005, sigma_mm=1.0)
+    assert filt.stats.skips_detected == 2
+    assert filt.estimate(6000.0)[0] == pytest.approx(6000.0 * 1.005, abs=0.1)
+
+
+def test_an_older_reference_does_not_count_its_travel_twice() -> None:
+    filt = _settled()
+    filt.predict(5100.0)
+    p_before = filt.p.copy()
+    filt.reference(5095.0, 5095.0 * 1.005, sigma_mm=1e6, advance=False)  # no information
+    np.testing.assert_allclose(filt.p, p_before, rtol=1e-6)
+
+
+def test_correct_maps_many_readings_like_estimate() -> None:
+    filt = _settled()
+    enc = np.array([0.0, 1234.5, 9999.0])
+    expected = [filt.estimate(float(e))[0] for e in enc]
+    np.testing.assert_allclose(filt.correct(enc), expected)
