@@ -62,11 +62,13 @@ def _default_T_r_c() -> FloatArray:
 
 @dataclass(frozen=True, eq=False)
 class Rig:
-    """Kinematic parameters: track, head mount on the trolley (T_t_r) and M_cr (T_r_c)."""
+    """Kinematic parameters: track, head mount on the trolley (T_t_r), M_cr (T_r_c) and the
+    rangefinder's mount in the head frame (T_r_l; its beam runs along +z_l)."""
 
     track: Track = field(default_factory=runway)
     T_t_r: FloatArray = field(default_factory=lambda: np.eye(4))
     T_r_c: FloatArray = field(default_factory=_default_T_r_c)
+    T_r_l: FloatArray = field(default_factory=lambda: np.eye(4))
 
     def T_w_r(self, s_mm: ArrayLike, pan_rad: ArrayLike, tilt_rad: ArrayLike) -> FloatArray:
         """Head frame in the world after the head has turned, broadcast over inputs."""

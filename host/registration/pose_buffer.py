@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 
@@ -102,6 +103,24 @@ class SampleBuffer:
         """Forget all samples (e.g. after a re-home or a clock resync)."""
         with self._lock:
             self._start = self._count = 0
+
+    def revise(self, t_from_ns: int, values_at: Callable[[Int64Array], npt.ArrayLike]) -> int:
+        """Rewrite the samples stamped at or after t_from_ns with values_at(their times).
+
+        For a late correction (a drift fix that holds from a past instant on): frames looked
+        up afterwards see it. Returns how many samples were rewritten.
+        """
+        with self._lock:
+            t, _ = self._view()
+            first = int(np.searchsorted(t, t_from_ns, side="left"))
+            if first == len(t):
+                return 0
+            new = np.asarray(values_at(t[first:].copy()), dtype=np.float64)
+            new = new.reshape(len(t) - first, -1)
+            for k, row in enumerate(new):
+                i = (self._start + first + k) % self.capacity
+                self._v[i] = self._v[i + self.capacity] = row
+            return len(new)
 
     def window(self) -> tuple[Int64Array, FloatArray]:
         """Copies of the retained times and values, oldest first."""

@@ -10,11 +10,16 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+
 from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
-from host.registration.pose_buffer import AngleBuffer, SampleBuffer
+from host.fusion.range_fix import RangeFixer
+from host.geometry.transforms import FloatArray
+from host.registration.pose_buffer import AngleBuffer, Int64Array, SampleBuffer
 from protocol.enums import Inputs
 
 DEFAULT_CHAIN_PITCH_MM = 12.7  # ISO 08B / ANSI 40 roller chain, when the controller has not said
+RAW_CAPACITY = 512  # uncorrected samples kept for late fixes (> 1 s at 500 Hz)
 
 
 @dataclasses.dataclass
@@ -22,10 +27,13 @@ class PoseFeed:
     """A `SampleSink` filling the pose buffers: track arc length and head angles.
 
     The controller reports millimetres from its zero; the feed adds the surveyed `home_s_mm`.
-    With reference marks configured, a `ChainFilter` maps the controller's millimetres to true
-    ones (chain stretch, tooth skips) and the buffer holds the corrected arc length. The filter
-    works relative to home, where its prior holds (the offset is small right after homing), so
-    it starts afresh at every homing and ignores marks while the controller is not homed.
+    With absolute references configured — reference marks, or surveyed surfaces the rangefinder
+    can read (`ranger`) — a `ChainFilter` maps the controller's millimetres to true ones (chain
+    stretch, tooth skips) and the buffer holds the corrected arc length. A reference describes a
+    past instant (the mark's edge, the reading's stamp): the samples buffered since then are
+    corrected again, so frames registered after it arrives see it. The filter works relative to
+    home, where its prior holds (the offset is small right after homing), so it starts afresh
+    at every homing and ignores references while the controller is not homed.
     """
 
     encoder: SampleBuffer
@@ -34,25 +42,30 @@ class PoseFeed:
     marks_mm: tuple[float, ...] = ()  # surveyed mark positions (track arc length)
     lap_mm: float | None = None  # closed track: marks recur every lap
     pitch_mm: Callable[[], float | None] = lambda: None  # the controller's IDENTIFY, if known
+    ranger: RangeFixer | None = None  # rangefinder readings of surveyed surfaces
     chain: ChainFilter | None = None
     raw_s_mm: float | None = None  # latest arc length before correction
     s_mm: float | None = None  # latest arc length pushed into the buffer
     marks_seen: int = 0  # REF_MARK events received
     marks_unhomed: int = 0  # of those, ignored: the controller's zero was not referenced yet
+    ranges_seen: int = 0  # RANGE samples received
+    ranges_unplaced: int = 0  # of those, not used: unhomed, or no encoder/head sample around
     homed: bool = False  # Inputs.HOMED of the latest encoder sample
+    _raw: SampleBuffer = dataclasses.field(default_factory=lambda: SampleBuffer(1, RAW_CAPACITY))
 
     def __post_init__(self) -> None:
-        if self.marks_mm and self.chain is None:
+        if (self.marks_mm or self.ranger is not None) and self.chain is None:
             self.chain = ChainFilter(ChainFilterConfig(chain_pitch_mm=self._pitch()))
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
-        """One encoder sample (controller mm from home) → the buffer, corrected if marks exist."""
+        """One encoder sample (controller mm from home) → the buffer, corrected when we can."""
         self._follow_homing(bool(inputs & Inputs.HOMED))
         self.raw_s_mm = self.home_s_mm + s_mm
         self.s_mm = self.raw_s_mm
         if self.chain is not None and self.homed:
             self.chain.predict(s_mm)
             self.s_mm = self.home_s_mm + self.chain.estimate(s_mm)[0]
+        self._raw.push(t_host_ns, [s_mm])
         self.encoder.push(t_host_ns, [self.s_mm])
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
@@ -60,12 +73,29 @@ class PoseFeed:
         self.head.push(t_host_ns, [pan_rad, tilt_rad])
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """Not used for the pose."""
+        """A rangefinder reading: an absolute reference when it lands on a surveyed surface."""
+        self.ranges_seen += 1
+        if self.ranger is None or self.chain is None:
+            return
+        enc = self._raw.lookup(t_host_ns)
+        angles = self.head.lookup(t_host_ns)
+        if not self.homed or enc.value is None or angles.value is None:
+            self.ranges_unplaced += 1
+            return
+        self._adopt_controller_pitch()
+        rel = float(enc.value[0])
+        predicted = self.home_s_mm + self.chain.estimate(rel)[0]
+        pan, tilt = float(angles.value[0]), float(angles.value[1])
+        fix = self.ranger.fix(predicted, pan, tilt, distance_mm if quality > 0 else None)
+        if fix is not None and self.chain.reference(
+            rel, fix.s_mm - self.home_s_mm, fix.sigma_mm, advance=False
+        ):
+            self._correct_since(t_host_ns)
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
         """A mark's captured encoder position: the nearest configured mark is the reference."""
         self.marks_seen += 1
-        if self.chain is None:
+        if self.chain is None or not self.marks_mm:
             return
         if not self.homed:
             self.marks_unhomed += 1
@@ -73,8 +103,8 @@ class PoseFeed:
         self._adopt_controller_pitch()
         predicted = self.home_s_mm + self.chain.estimate(s_mm)[0]
         mark = self.chain.associate(s_mm, self._candidates_rel(predicted))
-        if mark is not None:
-            self.chain.reference(s_mm, mark)
+        if mark is not None and self.chain.reference(s_mm, mark, advance=False):
+            self._correct_since(t_host_ns)
 
     def stats(self) -> dict[str, Any]:
         """Plain numbers for link statistics: raw and corrected position, the filter's state."""
@@ -97,12 +127,17 @@ class PoseFeed:
                 marks_unassociated=self.chain.stats.unassociated,
                 skips_detected=self.chain.stats.skips_detected,
             )
+        if self.ranger is not None:
+            out["ranges_seen"] = self.ranges_seen
+            out["ranges_unplaced"] = self.ranges_unplaced
+            out.update({f"range_{k}": v for k, v in vars(self.ranger.stats).items()})
         return out
 
     def rehome(self, home_s_mm: float) -> None:
         """A new survey of the controller's zero: fresh buffer and filter."""
         self.home_s_mm = home_s_mm
         self.encoder.clear()
+        self._raw.clear()
         self._restart_filter()
 
     def _follow_homing(self, homed: bool) -> None:
@@ -110,6 +145,20 @@ class PoseFeed:
         if homed and not self.homed:
             self._restart_filter()
         self.homed = homed
+
+    def _correct_since(self, t_ns: int) -> None:
+        """Re-correct the buffered samples from t_ns on with the filter as it now stands."""
+        chain = self.chain
+        assert chain is not None
+        t_raw, v_raw = self._raw.window()
+
+        def corrected(times: Int64Array) -> FloatArray:
+            raw = np.interp(times.astype(np.float64), t_raw.astype(np.float64), v_raw[:, 0])
+            return (self.home_s_mm + chain.correct(raw))[:, None]
+
+        if len(t_raw):
+            self.encoder.revise(t_ns, corrected)
+            self.s_mm = self.home_s_mm + chain.estimate(float(v_raw[-1, 0]))[0]
 
     def _restart_filter(self) -> None:
         """Forget what the chain filter learned (same configuration)."""

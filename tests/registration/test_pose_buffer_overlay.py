@@ -81,6 +81,26 @@ def test_ring_wraps_many_times_and_stays_ordered() -> None:
     np.testing.assert_allclose(r.value, [20.5, -20.5])
 
 
+def test_revise_rewrites_only_samples_from_a_time_on_across_the_ring_seam() -> None:
+    buf = SampleBuffer(1, capacity=8)
+    for k in range(13):  # wrapped: the retained window straddles the end of the ring
+        buf.push(k * 10, [float(k)])
+    seen: list[int] = []
+
+    def plus_100(times: np.ndarray) -> np.ndarray:
+        seen.extend(int(t) for t in times)
+        return times / 10.0 + 100.0
+
+    assert buf.revise(95, plus_100) == 3
+    assert seen == [100, 110, 120]
+    _t, v = buf.window()
+    np.testing.assert_array_equal(v[:, 0], [5, 6, 7, 8, 9, 110, 111, 112])
+    mid = buf.lookup(115).value
+    assert mid is not None
+    assert mid[0] == pytest.approx(111.5)
+    assert buf.revise(1000, plus_100) == 0
+
+
 def test_angle_buffer_interpolates_across_pi() -> None:
     buf = AngleBuffer(2)
     buf.push(0, [math.pi - 0.1, 0.0])
