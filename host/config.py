@@ -29,6 +29,7 @@ from host.config_fields import (
     parse_vector3,
     spec,
 )
+from host.config_rangefinder import SURFACES_EXAMPLE, RangefinderConfig, surface_problems
 
 LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
@@ -323,6 +324,7 @@ class Config:
     link: LinkConfig = field(default_factory=LinkConfig)
     track: TrackConfig = field(default_factory=TrackConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
+    rangefinder: RangefinderConfig = field(default_factory=RangefinderConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
@@ -464,6 +466,8 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
     for i, seg in enumerate(track.segments):
         errors += _segment_problems(i, seg)
     errors += _track_position_problems(track)
+    for i, surface in enumerate(config.rangefinder.surfaces):
+        errors += surface_problems(i, surface)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
     return errors
@@ -515,8 +519,8 @@ def _emit_section(obj: Any, prefix: str, lines: list[str]) -> None:
         value = getattr(obj, fld.name)
         if dataclasses.is_dataclass(value):
             nested.append((value, f"{prefix}.{fld.name}".lstrip(".")))
-        elif fld.name == "segments":
-            lines.append(_SEGMENTS_EXAMPLE)
+        elif fld.name in _TABLE_ARRAY_EXAMPLES:
+            lines.append(_TABLE_ARRAY_EXAMPLES[fld.name])
         else:
             lines.append(f"# {fld.metadata.get('doc', '')}")
             lines.append(f"{fld.metadata.get('key') or fld.name} = {_toml_value(fld, value)}")
@@ -533,6 +537,7 @@ _SEGMENTS_EXAMPLE = """# With preset = "custom", list the pieces of track in ord
 # kind = "arc"
 # radius_mm = 1000.0
 # angle_deg = 90.0"""
+_TABLE_ARRAY_EXAMPLES = {"segments": _SEGMENTS_EXAMPLE, "surfaces": SURFACES_EXAMPLE}
 
 
 def _toml_value(fld: dataclasses.Field[Any], value: Any) -> str:

@@ -11,7 +11,7 @@ from typing import Any
 from host.recording.reader import Record, RecordingReader
 
 ReplayCallback = Callable[[Record], Any]
-SAMPLE_KINDS = frozenset({"link", "encoder", "head", "frame", "pose", "event"})
+SAMPLE_KINDS = frozenset({"link", "encoder", "head", "range", "frame", "pose", "event"})
 
 
 @dataclass

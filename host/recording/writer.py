@@ -30,6 +30,7 @@ KIND_HEADER = "header"
 KIND_LINK = "link"  # {"dir": "rx"|"tx", "bytes": raw wire bytes}
 KIND_ENCODER = "encoder"  # decoded ENCODER_SAMPLE fields + host_t_ns
 KIND_HEAD = "head"  # decoded HEAD_SAMPLE fields
+KIND_RANGE = "range"  # {"distance_mm", "quality"}: RANGE_SAMPLE, when ranging feeds the pose
 KIND_FRAME = "frame"  # {"index", "exposure_ns", "jpeg"?}
 KIND_POSE = "pose"  # PoseSample.to_dict()
 KIND_EVENT = "event"  # daemon events: link up/down, reload, …

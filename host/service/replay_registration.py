@@ -1,9 +1,10 @@
 """`orbitar replay`: re-run the registration on a recording, deterministically.
 
-Encoder, head and reference-mark records refill the pose buffers exactly as the link filled
-them; every recorded frame (or, without a camera, every published pose) asks the registration
-for the camera pose at its time again. The same recording and configuration always give the
-same output, so a replay can be compared with what the daemon published or with a new build.
+Encoder, head, rangefinder and reference-mark records refill the pose buffers exactly as the
+link filled them; every recorded frame (or, without a camera, every published pose) asks the
+registration for the camera pose at its time again. The same recording and configuration always
+give the same output, so a replay can be compared with what the daemon published or with a new
+build.
 """
 
 from __future__ import annotations
@@ -20,12 +21,19 @@ from host.config import Config, load_config
 from host.config_fields import ConfigError
 from host.recording.reader import Record, RecordingError
 from host.recording.replay import replay
-from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_POSE
+from host.recording.writer import (
+    KIND_ENCODER,
+    KIND_EVENT,
+    KIND_FRAME,
+    KIND_HEAD,
+    KIND_POSE,
+    KIND_RANGE,
+)
 from host.service.wiring import build_pose_source
 from protocol import Stream
 
 # The replay buffers must hold whatever rate was recorded: size them for the fastest stream.
-REPLAY_RATES_HZ = {Stream.ENCODER: 1000, Stream.HEAD: 1000}
+REPLAY_RATES_HZ = {Stream.ENCODER: 1000, Stream.HEAD: 1000, Stream.RANGE: 1000}
 
 
 class ReplayRegistration:
@@ -43,6 +51,8 @@ class ReplayRegistration:
             self.feed.on_encoder(record.t_ns, d["s_mm"], d.get("v_mm_s", 0.0), d.get("inputs", 0))
         elif record.kind == KIND_HEAD:
             self.feed.on_head(record.t_ns, d["pan_rad"], d["tilt_rad"])
+        elif record.kind == KIND_RANGE:
+            self.feed.on_range(record.t_ns, d["distance_mm"], d.get("quality", 0))
         elif record.kind == KIND_EVENT and "ref_mark_mm" in d:
             self.feed.on_mark(record.t_ns, d["ref_mark_mm"])
         elif record.kind in (KIND_FRAME, KIND_POSE):

@@ -24,16 +24,18 @@ from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import FrameSource, VideoCaptureSource
+from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig, orthonormalize_T
 from host.geometry.model import Wireframe, load_model, manipulator_wireframe
+from host.geometry.rangefinder import RangeScene, Surface
 from host.geometry.track import Track, runway
 from host.geometry.transforms import FloatArray, make_T, rot_z
 from host.link import Controller
 from host.link.common import LinkDown, LinkEvent, LinkState
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
-from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD
+from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_RANGE
 from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
 from host.registration.track_feed import PoseFeed
 from host.service.daemon import RecordTap
@@ -51,6 +53,19 @@ STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
     "xbee": {Stream.ENCODER: 100, Stream.HEAD: 20, Stream.STATUS: 10},
     "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
 }
+# With surveyed surfaces every reading can be a drift fix, and the sooner one follows a tooth
+# skip the fewer frames carry it: as fast as each link has room for (serial then runs at ~75 %).
+RANGE_RATES_HZ = {"serial": 100, "xbee": 40, "can": 250}
+
+
+def stream_rates(kind: str, ranging: bool) -> dict[Stream, int]:
+    """Telemetry rates for a link kind, with the rangefinder when its readings are used."""
+    rates = dict(STREAM_RATES_HZ[kind])
+    if ranging:
+        rates[Stream.RANGE] = RANGE_RATES_HZ[kind]
+    return rates
+
+
 RECONNECT_WAIT_S = 1.0  # how long connect() waits for the supervisor's own reconnection
 ENCODER_HORIZON_NS = 50_000_000  # carry the trolley forward at most 50 ms past its last sample
 HEAD_HORIZON_NS = 150_000_000  # head samples are slower and the head moves slowly
@@ -222,7 +237,8 @@ class RecordingSink:
         self.tap(KIND_HEAD, t_host_ns, {"pan_rad": pan_rad, "tilt_rad": tilt_rad})
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """Rangefinder samples are not recorded by the daemon."""
+        """A rangefinder sample (streamed only when surveyed surfaces make it a reference)."""
+        self.tap(KIND_RANGE, t_host_ns, {"distance_mm": distance_mm, "quality": quality})
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
         """A reference mark passed: an event in the recording."""
@@ -238,7 +254,8 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
         record_tap(KIND_EVENT, time.monotonic_ns(), {"link_event": event.value, "detail": detail})
 
     ctrl = Controller(build_transport(config), session, backoff, on_event=on_event)
-    adapter = LinkController(ctrl, STREAM_RATES_HZ[config.link.kind])
+    ranging = bool(config.rangefinder.surfaces)
+    adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
     ctrl.add_sink(RecordingSink(record_tap, adapter))
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
     return adapter
@@ -267,8 +284,23 @@ def _segment_dict(seg: SegmentConfig) -> dict[str, Any]:
 
 
 def build_rig(config: Config) -> Rig:
-    """Track and M_cr from the configuration (M_cr's rotation made orthonormal)."""
-    return Rig(track=build_track(config), T_r_c=orthonormalize_T(np.array(config.head.m_cr)))
+    """Track, M_cr and the rangefinder mount (rotations made orthonormal)."""
+    return Rig(
+        track=build_track(config),
+        T_r_c=orthonormalize_T(np.array(config.head.m_cr)),
+        T_r_l=orthonormalize_T(np.array(config.rangefinder.mount)),
+    )
+
+
+def build_ranger(config: Config, rig: Rig) -> RangeFixer | None:
+    """Rangefinder fixes from `[rangefinder]`, if it lists surveyed surfaces."""
+    rf = config.rangefinder
+    if not rf.surfaces:
+        return None
+    surfaces = tuple(
+        Surface(s.name, s.point_mm, s.normal, s.radius_mm or math.inf) for s in rf.surfaces
+    )
+    return RangeFixer(rig, RangeScene(surfaces), RangeFixConfig(noise_mm=rf.noise_mm))
 
 
 def build_camera(config: Config) -> CameraModel:
@@ -312,6 +344,7 @@ def build_pose_source(
         marks_mm=config.track.reference_marks_mm,
         lap_mm=rig.track.length_mm if rig.track.closed else None,
         pitch_mm=pitch_mm,
+        ranger=build_ranger(config, rig),
     )
     latency_ns = round(exposure_latency_ms * 1e6)
     source = PoseSource(rig, feed.encoder, feed.head, exposure_latency_ns=latency_ns)

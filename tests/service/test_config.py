@@ -187,3 +187,43 @@ def test_home_marks_and_workpiece_problems_are_named() -> None:
     assert problems("[track]\nhome_s_mm = 17000\n") == [
         "track.home_s_mm = 17000.0: beyond the track's 16283.2 mm"
     ]
+
+
+RANGEFINDER_TOML = """
+[rangefinder]
+noise_mm = 2.5
+mount = [[1, 0, 0, 10], [0, 1, 0, 0], [0, 0, 1, -30], [0, 0, 0, 1]]
+[[rangefinder.surfaces]]
+name = "east wall"
+point_mm = [6000, 0, 0]
+normal = [-2, 0, 0]
+[[rangefinder.surfaces]]
+name = "target board"
+point_mm = [0, 4000, 2500]
+normal = [0, -1, 0]
+radius_mm = 300
+"""
+
+
+def test_rangefinder_mount_and_surfaces_load() -> None:
+    rf = loads_config(RANGEFINDER_TOML).rangefinder
+    assert rf.noise_mm == 2.5
+    assert rf.mount[0][3] == 10.0
+    assert [s.name for s in rf.surfaces] == ["east wall", "target board"]
+    assert rf.surfaces[0].radius_mm == 0.0  # unbounded
+    assert rf.surfaces[1].point_mm == (0.0, 4000.0, 2500.0)
+    assert Config().rangefinder.surfaces == ()
+    assert "# [[rangefinder.surfaces]]" in default_config_text()
+
+
+def test_rangefinder_problems_are_named() -> None:
+    found = problems(
+        "[rangefinder]\nnoise_mm = 0\n[[rangefinder.surfaces]]\npoint_mm = [1, 2]\n"
+        "normal = [0, 0, 0]\nradius_mm = -5\ncolour = 'red'\n"
+    )
+    assert any(p.startswith("rangefinder.noise_mm = 0: out of range") for p in found)
+    assert "rangefinder.surfaces[0].point_mm = [1, 2]: expected a list of 3 numbers" in found
+    assert any(p.startswith("rangefinder.surfaces[0].radius_mm = -5: out of range") for p in found)
+    assert any(p.startswith("rangefinder.surfaces[0].colour: unknown key") for p in found)
+    assert "rangefinder.surfaces[0].normal = [0.0, 0.0, 0.0]: must not be zero" in found
+    assert "rangefinder.surfaces[0].name: required" in found

@@ -166,3 +166,25 @@ def test_factory_wires_the_feed_into_link_stats() -> None:
     assert stats["raw_s_mm"] == pytest.approx(142.0)
     assert stats["chain_scale"] == 1.0
     assert stats["marks_seen"] == 0
+
+
+def test_surveyed_surfaces_give_the_feed_rangefinder_fixes() -> None:
+    config = loads_config(
+        "[track]\nhome_s_mm = 100.0\n"
+        "[[rangefinder.surfaces]]\nname = 'east wall'\npoint_mm = [6000, 0, 0]\n"
+        "normal = [-1, 0, 0]\n"
+    )
+    source, feed = build_pose_source(config, STREAM_RATES_HZ["serial"])
+    assert feed.ranger is not None
+    assert feed.chain is not None
+    np.testing.assert_array_equal(source.rig.T_r_l, np.eye(4))
+    # The beam level along the first straight: the east wall is 8 m - s ahead.
+    for i in range(40):
+        t = i * SAMPLE_NS
+        feed.on_encoder(t, i * STEP_MM, 2000.0, HOMED)
+        feed.on_head(t, 0.0, math.pi / 2)
+        true_s = 100.0 + STRETCH * i * STEP_MM
+        feed.on_range(t + 1, 8000.0 - true_s, 200)
+    assert feed.ranger.stats.fixes == 40
+    assert feed.s_mm == pytest.approx(100.0 + STRETCH * 39 * STEP_MM, abs=0.2)
+    assert feed.stats()["range_fixes"] == 40
