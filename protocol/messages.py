@@ -48,7 +48,31 @@ class Heartbeat:
 class ClockSync:
     """Ask for the controller clock; never retransmitted (a lost probe is just skipped)."""
 
+    # The host takes the midpoint of the round trip as the moment the controller read its clock,
+    # which is only right when both directions take equally long. On a byte-serial link a frame's
+    # time on the line grows with its length, so the probe carries padding that makes it exactly
+    # as long as CLOCK_SYNC_REPLY (a test in tests/protocol keeps the two equal). Senders send
+    # zeros; receivers ignore the values, so the full wire range stays valid on receipt and a
+    # later version may give these bytes a meaning.
     token: Annotated[int, field(U32, "", "opaque value echoed in the reply")]
+    padding16: Annotated[
+        int,
+        field(
+            U16,
+            "",
+            "zero; makes the probe as long on the wire as its reply so both directions take "
+            "equally long; ignored on receipt",
+        ),
+    ] = 0
+    padding32: Annotated[
+        int,
+        field(
+            U32,
+            "",
+            "zero; makes the probe as long on the wire as its reply so both directions take "
+            "equally long; ignored on receipt",
+        ),
+    ] = 0
 
 
 @message(0x04, H2C, acked=True, reply="ACK")

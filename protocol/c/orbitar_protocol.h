@@ -17,7 +17,7 @@
 #include <string.h>
 
 #define ORB_PROTOCOL_VERSION 1u
-#define ORB_SCHEMA_HASH UINT32_C(0x3F552DD5)
+#define ORB_SCHEMA_HASH UINT32_C(0x24BC5002)
 #define ORB_HEADER_SIZE 5u
 #define ORB_CRC_SIZE 2u
 #define ORB_MAX_WIRE_FRAME 84u /* encoded bytes plus the 0x00 delimiter */
@@ -272,14 +272,18 @@ static inline int orb_heartbeat_in_range(const orb_heartbeat_t *m)
 
 /* ---- CLOCK_SYNC (0x03, host → controller): Ask for the controller clock; never retransmitted (a lost probe is just skipped). */
 #define ORB_MSG_CLOCK_SYNC 0x03u
-#define ORB_CLOCK_SYNC_SIZE 4u
+#define ORB_CLOCK_SYNC_SIZE 10u
 typedef struct {
     uint32_t token; /**< opaque value echoed in the reply */
+    uint16_t padding16; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
+    uint32_t padding32; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
 } orb_clock_sync_t;
 
 static inline size_t orb_clock_sync_encode(const orb_clock_sync_t *m, uint8_t *buf)
 {
     orb_put_u32(buf + 0, m->token);
+    orb_put_u16(buf + 4, m->padding16);
+    orb_put_u32(buf + 6, m->padding32);
     return ORB_CLOCK_SYNC_SIZE;
 }
 
@@ -287,6 +291,8 @@ static inline int orb_clock_sync_decode(orb_clock_sync_t *m, const uint8_t *buf,
 {
     if (len != ORB_CLOCK_SYNC_SIZE) return -1;
     m->token = orb_get_u32(buf + 0);
+    m->padding16 = orb_get_u16(buf + 4);
+    m->padding32 = orb_get_u32(buf + 6);
     return 0;
 }
 

@@ -190,6 +190,16 @@ def test_clock_sync_reply_carries_mcu_time(rig: Rig) -> None:
     assert abs(reply.mcu_time_us - rig.sim.mcu_time_us) <= 2 * config.TICK_US
 
 
+def test_clock_sync_padding_is_ignored_whatever_its_value(rig: Rig) -> None:
+    # Senders send zeros, but a receiver must not refuse other values (a later version may
+    # use those bytes): the probe is answered as usual.
+    seq = rig.client.send(ClockSync(0x5A5A, 0xFFFF, 0xFFFF_FFFF))
+    reply = rig.client.wait_reply(seq)
+    assert isinstance(reply, ClockSyncReply)
+    assert reply.token == 0x5A5A
+    assert abs(reply.mcu_time_us - rig.sim.mcu_time_us) <= 2 * config.TICK_US
+
+
 def test_garbage_bytes_are_counted_not_fatal(rig: Rig) -> None:
     rig.sim.send(b"\x01\x02\x03\x00" + b"\x55" * 300 + b"\x00" + b"\x05abc\x00")
     reply = rig.client.request(Hello(1, 0))

@@ -16,9 +16,9 @@ from host.link.common import (
 )
 from host.link.session import Session, SessionConfig
 from host.transport.memory import Impairment
-from protocol import PROTOCOL_VERSION, SCHEMA_HASH
+from protocol import PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder, encode_frame
 from protocol.enums import NakCode, State
-from protocol.messages import Ack, ParamSet, Stop
+from protocol.messages import Ack, ClockSync, ClockSyncReply, ParamSet, Stop
 from tests.link.fake_controller import FakeController
 
 FAST = SessionConfig(rto_initial_s=0.02, rto_min_s=0.02, rto_max_s=0.2, max_tries=12)
@@ -291,3 +291,35 @@ async def test_controller_seq_restart_is_reported(fake: FakeController) -> None:
     await session.stop()
     assert events == [LinkEvent.RESET_SUSPECTED]
     assert session.stats.rx_lost == 0
+
+
+async def test_clock_probes_go_out_zero_padded_and_as_long_as_their_replies(
+    fake: FakeController, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    host_bytes: list[bytes] = []
+    answer = fake.receive
+
+    def tap(data: bytes) -> None:
+        host_bytes.append(bytes(data))
+        answer(data)
+
+    monkeypatch.setattr(fake, "receive", tap)  # before wire(): the transport delivers here
+    session = await start(fake, SessionConfig(clock_sync_interval_s=0.005))
+    await session.handshake()
+    for _ in range(200):
+        if session.stats.clock_replies >= 3:
+            break
+        await asyncio.sleep(0.005)
+    await session.stop()
+    assert session.stats.clock_replies >= 3
+    probes = []
+    for part in b"".join(host_bytes).split(b"\x00"):
+        frame = part + b"\x00"
+        packets = FrameDecoder().feed(frame) if part else []
+        if packets and isinstance(packets[0].message, ClockSync):
+            probes.append((len(frame), packets[0].message))
+    assert len(probes) >= 3
+    reply_len = len(encode_frame(ClockSyncReply(0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF), 0xFFFF))
+    for length, probe in probes:
+        assert length == reply_len
+        assert (probe.padding16, probe.padding32) == (0, 0)

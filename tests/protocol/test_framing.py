@@ -6,8 +6,8 @@ import random
 
 import pytest
 
-from protocol import DropCounters, FrameDecoder, Packet, encode_frame
-from protocol.schema import MAX_WIRE_FRAME, SCHEMA
+from protocol import DropCounters, Flag, FrameDecoder, Packet, encode_frame
+from protocol.schema import MAX_WIRE_FRAME, SCHEMA, MessageSpec
 from tests.protocol.helpers import (
     InjectedStream,
     build_injected_stream,
@@ -159,3 +159,47 @@ def test_idle_delimiters_are_not_errors() -> None:
     packets, dec = _feed(b"\x00" * 50 + good + b"\x00" * 50, [1])
     assert len(packets) == 1
     assert dec.drops.total() == 0
+
+
+def _wire_lengths(spec: MessageSpec) -> set[int]:
+    """Wire lengths of a message with every field at its wire type's extremes or random, at the
+    extreme seqs and with every flag off and on: the content must not change the length."""
+    rng = random.Random(spec.id)
+    fills = [
+        {f.name: f.wire.lo for f in spec.fields},
+        {f.name: f.wire.hi for f in spec.fields},
+        *({f.name: rng.randint(f.wire.lo, f.wire.hi) for f in spec.fields} for _ in range(20)),
+    ]
+    all_flags = Flag.ACK_REQUESTED | Flag.RETRANSMIT
+    return {
+        len(encode_frame(spec.cls(**values), seq, flags))
+        for values in fills
+        for seq in (0, 0xFFFF)
+        for flags in (Flag.NONE, all_flags)
+    }
+
+
+def test_clock_sync_probe_is_exactly_as_long_on_the_wire_as_its_reply() -> None:
+    # The host takes the midpoint of a probe's round trip as the instant the controller read its
+    # clock. On a byte-serial line a frame occupies the line for its length, so any difference
+    # between probe and reply shifts every mapped timestamp by half of it (43 µs per byte at
+    # 115200 baud). PROTOCOL.md §8 requires the two to stay equally long.
+    probe = SCHEMA.by_name["CLOCK_SYNC"]
+    reply = SCHEMA.by_name[probe.reply or ""]
+    assert reply.name == "CLOCK_SYNC_REPLY"
+    probe_lengths, reply_lengths = _wire_lengths(probe), _wire_lengths(reply)
+    assert len(probe_lengths) == 1, f"CLOCK_SYNC wire length varies: {sorted(probe_lengths)}"
+    assert probe_lengths == reply_lengths, (
+        f"CLOCK_SYNC is {probe_lengths.pop()} bytes on the wire, "
+        f"CLOCK_SYNC_REPLY {reply_lengths.pop()}"
+    )
+
+
+def test_clock_sync_padding_defaults_to_zero_and_is_not_range_limited() -> None:
+    # Senders send zeros; receivers ignore the value, so no value may count as out of range.
+    probe = SCHEMA.by_name["CLOCK_SYNC"]
+    padding = [f for f in probe.fields if f.name != "token"]
+    assert [f.name for f in padding] == ["padding16", "padding32"]
+    msg = probe.cls(token=7)
+    assert all(getattr(msg, f.name) == 0 for f in padding)
+    assert all(f.info.bounds() == (f.wire.lo, f.wire.hi) for f in padding)
