@@ -12,8 +12,10 @@ number k of chain pitches is taken as a tooth skip: the trolley jumped k true pi
 (k · pitch · scale), so the offset is moved by exactly that — its uncertainty through the
 scale's — and the reference is then applied as usual. The scale is untouched by the jump, and
 a single stray reading that happens to mimic a skip is undone by the next good one, which then
-looks like the opposite skip. Skips are only decided by references sharp enough to tell one
-pitch from the next. Other gross outliers are rejected and counted.
+looks like the opposite skip. A skip is decided only when the evidence tells one pitch from the
+next: one sharp reference (a mark) suffices; coarse ones (a rangefinder reading at a shallow
+angle) are pooled while consecutive ones agree on the same whole number of pitches, until
+their combined σ is small enough. Other gross outliers are rejected and counted.
 """
 
 from __future__ import annotations
@@ -65,6 +67,8 @@ class ChainFilter:
     p: FloatArray = field(default_factory=lambda: np.zeros((2, 2)))
     stats: FilterStats = field(default_factory=FilterStats)
     _last_enc_mm: float | None = None
+    # Consecutive gated-out references that agree on a skip: (teeth, Σ 1/r, Σ innovation/r).
+    _pending: tuple[int, float, float] | None = None
 
     def __post_init__(self) -> None:
         c = self.config
@@ -109,11 +113,12 @@ class ChainFilter:
         innovation = true_mm - float(h @ self.x)
         s = float(h @ self.p @ h) + r
         if innovation**2 > GATE_SIGMAS**2 * s:
-            if not self._apply_skip(innovation, s):
+            if not self._apply_skip(innovation, float(h @ self.p @ h), r):
                 self.stats.rejected += 1
                 return False
             innovation = true_mm - float(h @ self.x)
             s = float(h @ self.p @ h) + r
+        self._pending = None
         gain = self.p @ h / s
         self.x = self.x + gain * innovation
         self.p = (np.eye(2) - np.outer(gain, h)) @ self.p
@@ -132,19 +137,31 @@ class ChainFilter:
             return None
         return nearest
 
-    def _apply_skip(self, innovation: float, s: float) -> bool:
-        """If the jump is whole tooth skips, move the offset by them; else leave all as is."""
+    def _apply_skip(self, innovation: float, predicted_var: float, r: float) -> bool:
+        """If the evidence says whole tooth skips, move the offset by them; else leave all as is.
+
+        The evidence is this reference pooled with the consecutive ones before it that pointed
+        at the same number of teeth; the prediction's variance is common to all of them.
+        """
         c = self.config
         true_pitch = c.chain_pitch_mm * float(self.x[1])
         teeth = round(innovation / true_pitch)
         if teeth == 0 or abs(teeth) > c.max_skip_teeth:
+            self._pending = None
             return False
-        band = SKIP_TOLERANCE_MM + GATE_SIGMAS * math.sqrt(s)
-        if band >= 0.5 * true_pitch or abs(innovation - teeth * true_pitch) > band:
+        weight, weighted = 1.0 / r, innovation / r
+        if self._pending is not None and self._pending[0] == teeth:
+            weight += self._pending[1]
+            weighted += self._pending[2]
+        self._pending = (teeth, weight, weighted)
+        pooled = weighted / weight
+        band = SKIP_TOLERANCE_MM + GATE_SIGMAS * math.sqrt(predicted_var + 1.0 / weight)
+        if band >= 0.5 * true_pitch or abs(pooled - teeth * true_pitch) > band:
             return False
         # offset' = offset + teeth · pitch · scale: shift it, carry the scale's σ into it.
         jump = np.array([[1.0, teeth * c.chain_pitch_mm], [0.0, 1.0]])
         self.x = np.array([self.x[0] + teeth * true_pitch, self.x[1]])
         self.p = jump @ self.p @ jump.T
+        self._pending = None
         self.stats.skips_detected += 1
         return True

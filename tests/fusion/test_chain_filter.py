@@ -125,3 +125,29 @@ def test_correct_maps_many_readings_like_estimate() -> None:
     enc = np.array([0.0, 1234.5, 9999.0])
     expected = [filt.estimate(float(e))[0] for e in enc]
     np.testing.assert_allclose(filt.correct(enc), expected)
+
+
+def test_coarse_references_that_agree_on_a_skip_decide_it_together() -> None:
+    filt = _settled()
+    jumped = PITCH_MM * 1.005
+    for k in range(3):  # σ 3 mm each: none alone can tell one pitch from the next
+        enc = 5200.0 + k
+        assert not filt.reference(enc, enc * 1.005 + jumped, sigma_mm=3.0)
+    assert filt.stats.skips_detected == 0
+    for k in range(3, 12):
+        enc = 5200.0 + k
+        if filt.reference(enc, enc * 1.005 + jumped, sigma_mm=3.0):
+            break
+    assert filt.stats.skips_detected == 1
+    assert filt.estimate(6000.0)[0] == pytest.approx(6000.0 * 1.005 + jumped, abs=1.0)
+
+
+def test_a_good_reference_in_between_clears_the_pooled_evidence() -> None:
+    filt = _settled()
+    jumped = PITCH_MM * 1.005
+    for k in range(3):
+        filt.reference(5200.0 + k, (5200.0 + k) * 1.005 + jumped, sigma_mm=3.0)
+    assert filt.reference(5204.0, 5204.0 * 1.005, sigma_mm=3.0)  # no skip after all
+    for k in range(5, 8):
+        assert not filt.reference(5200.0 + k, (5200.0 + k) * 1.005 + jumped, sigma_mm=3.0)
+    assert filt.stats.skips_detected == 0
