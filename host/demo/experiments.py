@@ -8,6 +8,8 @@ the frame loop, as on a real rig; the simulator's ground truth arrives only insi
 from __future__ import annotations
 
 import asyncio
+import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -17,7 +19,7 @@ from numpy.typing import NDArray
 
 from hil_sim.runner import Simulation
 from host.demo.feeds import TrackFeed
-from host.demo.scoring import Score, centre_error, probe_error, summary
+from host.demo.scoring import PROBE_DEPTH_MM, Score, aimed_errors, centre_error, summary
 from host.demo.world import SceneTruth, SimWorld
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import Frame
@@ -27,22 +29,26 @@ from host.geometry.model import Wireframe
 from host.geometry.transforms import make_T
 from host.link import Controller
 from host.registration.pose_buffer import PoseSource
-from protocol import Stream
+from host.service.wiring import stream_rates
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[str, float], None]
 
-# Telemetry each link carries with room to spare for commands: an ENCODER_SAMPLE is 26 bytes
-# on the wire, so 115200 baud (11.5 kB/s) cannot carry 500 Hz; XBee's ~35 kbit/s less still.
+# The daemon's telemetry rates (an ENCODER_SAMPLE is 26 bytes on the wire, so 115200 baud
+# cannot carry 500 Hz), with the rangefinder on: the hall's walls are surveyed.
 STREAM_RATES_HZ = {
-    "pty": {Stream.ENCODER: 200, Stream.HEAD: 50, Stream.STATUS: 20},
-    "xbee": {Stream.ENCODER: 100, Stream.HEAD: 20, Stream.STATUS: 10},
-    "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
+    link: stream_rates(kind, ranging=True)
+    for link, kind in (("pty", "serial"), ("xbee", "xbee"), ("can", "can"))
 }
+# Drift loop: the head turns the rangefinder (and camera) to look ahead along the track,
+# level, so the beam meets the hall's end walls nearly head-on on the straights.
+LOOK_AHEAD_PAN_RAD = 0.0
+LOOK_AHEAD_TILT_RAD = math.pi / 2
+HOMING_RUN_UP_MM = 100.0  # drive to just before the home switch fast, then seek it slowly
 SETTLE_S = 0.2  # ring-down after the head reports it arrived
 HEAD_TIMEOUT_S = 10.0
 HEAD_TOLERANCE_RAD = 2e-3
-ACCEL_MM_S2 = 500.0
+ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
 
 
 @dataclass(frozen=True)
@@ -65,12 +71,12 @@ class Plan:
         """About a quarter of the full run."""
         return Plan(
             observation_mm=(0.0, 300.0),
-            observations=10,
-            travel_speed_mm_s=300.0,
-            moving_length_mm=400.0,
-            moving_speed_mm_s=200.0,
-            moving_samples=10,
-            loop_length_mm=6_000.0,
+            observations=8,
+            travel_speed_mm_s=500.0,
+            moving_length_mm=300.0,
+            moving_speed_mm_s=300.0,
+            moving_samples=8,
+            loop_length_mm=4_600.0,  # the first straight and part of a corner
             loop_speed_mm_s=500.0,
             skips_at_fraction=(0.5,),
         )
@@ -139,9 +145,20 @@ class Bench:
         distance = abs(s_track_mm - (self.feed.last_enc_mm or s_track_mm))
         await motion.done(timeout_s=10.0 + 2.0 * distance / speed_mm_s)
 
+    async def drive_and_aim(
+        self, s_track_mm: float, speed_mm_s: float, target_w: FloatArray
+    ) -> None:
+        """Drive to a track position with the head turning toward a world point on the way."""
+        await self.ctrl.set_head(*self.rig.aim(s_track_mm, target_w))
+        await self.move(s_track_mm, speed_mm_s)
+        await self.aim(s_track_mm, target_w)
+
     async def aim(self, s_track_mm: float, target_w: FloatArray) -> None:
         """Point the head at a world point from a track position, and let it settle."""
-        pan, tilt = self.rig.aim(s_track_mm, target_w)
+        await self.point_head(*self.rig.aim(s_track_mm, target_w))
+
+    async def point_head(self, pan: float, tilt: float) -> None:
+        """Turn the head to these angles and let it settle."""
         await self.ctrl.set_head(pan, tilt)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + HEAD_TIMEOUT_S
@@ -177,8 +194,7 @@ async def static_experiment(
     for i, offset in enumerate(plan.observation_mm):
         progress(f"static: observation point {offset:.0f} mm", i / len(plan.observation_mm))
         s = start_s + offset
-        await bench.move(s, plan.travel_speed_mm_s)
-        await bench.aim(s, target)
+        await bench.drive_and_aim(s, plan.travel_speed_mm_s, target)
         results = await bench.collector.gather(plan.observations, 30.0)
         scores = [sc for r, _ in results if (sc := centre_error(r, bench.camera, centroid))]
         rows[f"{offset:.0f}"] = {
@@ -197,8 +213,8 @@ async def moving_experiment(
 ) -> dict[str, Any]:
     """§5.3: the workpiece moves along X, the camera follows at the same speed; R of eq. 15."""
     centroid = bench.model.vertices.mean(axis=0)
-    await bench.move(start_s, plan.travel_speed_mm_s)
-    await bench.aim(start_s, (robot.pose_at_ns(0) @ np.append(centroid, 1.0))[:3])
+    start_target = (robot.pose_at_ns(0) @ np.append(centroid, 1.0))[:3]
+    await bench.drive_and_aim(start_s, plan.travel_speed_mm_s, start_target)
     progress("moving: tracking the robot", 0.0)
     loop = asyncio.get_running_loop()
     robot.start(loop.time())
@@ -236,18 +252,28 @@ async def drift_experiment(
 ) -> dict[str, Any]:
     """Beyond the paper: a loop with a stretched chain and tooth skips, encoder-only vs fused."""
     world.with_truth(lambda sim: sim.set_elongation(plan.elongation))
+    await bench.ctrl.set_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)  # turns while homing
+    switch_s = world.sim.scenario.track.home_s_mm  # where the switch was mounted (installation)
+    await bench.move(switch_s + HOMING_RUN_UP_MM, plan.travel_speed_mm_s)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
     bench.feed.set_home(survey_home(bench, world))
+    await bench.point_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)
     start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
+    marks_before = bench.feed.marks_seen
     raw_scores: list[Score] = []
     fused_scores: list[Score] = []
 
+    centroid = bench.model.vertices.mean(axis=0)
+    target = (bench.workpiece(time.monotonic_ns()) @ np.append(centroid, 1.0))[:3]
+
     def take(r: tuple[Registration, Registration]) -> None:
         raw, fused = r
-        if isinstance(raw.truth, SceneTruth) and raw.T_w_c is not None and fused.T_w_c is not None:
-            raw_scores.append(probe_error(raw.T_w_c, raw.truth, bench.camera))
-            fused_scores.append(probe_error(fused.T_w_c, raw.truth, bench.camera))
+        truth = raw.truth
+        if isinstance(truth, SceneTruth) and raw.T_w_c is not None and fused.T_w_c is not None:
+            raw_score, fused_score = aimed_errors(r, truth, bench.rig, bench.camera, target)
+            raw_scores.append(raw_score)
+            fused_scores.append(fused_score)
 
     skips = sorted(start_enc + f * plan.loop_length_mm for f in plan.skips_at_fraction)
     bench.collector.sink = take
@@ -274,21 +300,32 @@ async def drift_experiment(
         await finished
     finally:
         bench.collector.sink = None
+    pitch_px = world.sim.scenario.chain.pitch_mm * bench.camera.fx / PROBE_DEPTH_MM
+    windows = skip_windows(fused_scores, skip_s, 0.5 * pitch_px)
+    corrected = bench.feed.corrected
     return {
         "elongation": plan.elongation,
         "tooth_skips": len(plan.skips_at_fraction),
-        "marks_seen": bench.feed.marks_seen,
+        "marks_seen": bench.feed.marks_seen - marks_before,
+        "references_used": bench.feed.chain.stats.updates,
+        "range_fixes": corrected.ranger.stats.fixes if corrected.ranger else 0,
         "skips_detected": bench.feed.chain.stats.skips_detected,
         "scale_estimate": float(bench.feed.chain.x[1]),
         "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),
         "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
         "fused_px": summary([sc.error_px for sc in fused_scores]),
-        # A skip is invisible until the next mark; this separates that from the rest.
+        # Between a skip and the first frame the fusion has put right again: how long that
+        # takes, and the error everywhere else.
+        "skip_frames": [end - start for start, end in windows],
+        "skip_travel_mm": [
+            fused_scores[min(end, len(fused_scores) - 1)].s_true_mm - fused_scores[start].s_true_mm
+            for start, end in windows
+        ],
         "fused_px_outside_skip_windows": summary(
             [
                 sc.error_px
-                for sc in fused_scores
-                if not _in_skip_window(sc.s_true_mm, skip_s, bench.feed.marks_mm)
+                for i, sc in enumerate(fused_scores)
+                if not any(start <= i < end for start, end in windows)
             ]
         ),
         "trace": {
@@ -305,13 +342,19 @@ def _skip_tooth(sim: Simulation) -> float:
     return sim.truth().s_mm
 
 
-def _in_skip_window(s_mm: float, skips_mm: list[float], marks_mm: tuple[float, ...]) -> bool:
-    """Whether s lies between an injected skip and the next reference mark after it."""
+def skip_windows(
+    scores: list[Score], skips_mm: list[float], settled_px: float
+) -> list[tuple[int, int]]:
+    """Per skip, [first frame past it, first frame after that back under settled_px)."""
+    windows = []
     for skip in skips_mm:
-        following = [m for m in marks_mm if m > skip]
-        if skip <= s_mm < (min(following) if following else float("inf")):
-            return True
-    return False
+        start = next((i for i, sc in enumerate(scores) if sc.s_true_mm >= skip), len(scores))
+        end = next(
+            (i for i in range(start, len(scores)) if scores[i].error_px < settled_px),
+            len(scores),
+        )
+        windows.append((start, end))
+    return windows
 
 
 def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:

@@ -1,8 +1,9 @@
 """The demo's two registrations side by side, both on the daemon's own `PoseFeed`.
 
 The encoder-only feed is the paper's method; the corrected feed also runs the chain filter on
-the REF_MARK captures (the encoder count at each mark's edge). One sink fans the controller's
-samples out to both, so they see exactly the same data.
+the absolute references: REF_MARK captures (the encoder count at each mark's edge) and
+rangefinder readings of the hall's surveyed walls. One sink fans the controller's samples out
+to both, so they see exactly the same data.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from host.fusion.chain_filter import ChainFilter
+from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
 from host.registration.track_feed import PoseFeed
 
@@ -17,13 +19,16 @@ ENCODER_CAPACITY = 8192  # 16 s at 500 Hz
 HEAD_CAPACITY = 2048
 
 
-def _feed(marks_mm: tuple[float, ...], pitch_mm: float) -> PoseFeed:
+def _feed(
+    marks_mm: tuple[float, ...], pitch_mm: float, ranger: RangeFixer | None = None
+) -> PoseFeed:
     """A PoseFeed with buffers sized for the demo's longest lookups."""
     return PoseFeed(
         SampleBuffer(1, ENCODER_CAPACITY),
         AngleBuffer(2, HEAD_CAPACITY),
         marks_mm=marks_mm,
         pitch_mm=lambda: pitch_mm,
+        ranger=ranger,
     )
 
 
@@ -33,12 +38,13 @@ class TrackFeed:
 
     marks_mm: tuple[float, ...] = ()
     pitch_mm: float = 12.7
+    ranger: RangeFixer | None = None
     encoder_only: PoseFeed = field(init=False)
     corrected: PoseFeed = field(init=False)
 
     def __post_init__(self) -> None:
         self.encoder_only = _feed((), self.pitch_mm)
-        self.corrected = _feed(self.marks_mm, self.pitch_mm)
+        self.corrected = _feed(self.marks_mm, self.pitch_mm, self.ranger)
 
     @property
     def raw(self) -> SampleBuffer:
@@ -73,8 +79,8 @@ class TrackFeed:
 
     @property
     def marks_seen(self) -> int:
-        """Marks the filter took as references."""
-        return self.chain.stats.updates
+        """REF_MARK events received while homed."""
+        return self.corrected.marks_seen - self.corrected.marks_unhomed
 
     def set_home(self, home_s_mm: float) -> None:
         """After (re)homing: the surveyed home, fresh buffers and filter."""
@@ -92,7 +98,8 @@ class TrackFeed:
         self.corrected.on_head(t_host_ns, pan_rad, tilt_rad)
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """Not used by the registration."""
+        """Only the corrected feed uses the rangefinder."""
+        self.corrected.on_range(t_host_ns, distance_mm, quality)
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
         """Only the corrected feed uses marks."""

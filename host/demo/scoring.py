@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from host.demo.world import SceneTruth
 from host.frames.registrar import Registration
 from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
 from host.geometry.transforms import invert_T, transform_points
 
 FloatArray = NDArray[np.float64]
@@ -41,15 +42,48 @@ def centre_error(reg: Registration, camera: CameraModel, centroid_p: FloatArray)
 
 
 def probe_error(
-    T_w_c_est: FloatArray, truth: SceneTruth, camera: CameraModel, depth_mm: float = PROBE_DEPTH_MM
+    T_w_c_est: FloatArray,
+    T_w_c_true: FloatArray,
+    s_true_mm: float,
+    camera: CameraModel,
+    depth_mm: float = PROBE_DEPTH_MM,
 ) -> Score:
     """Overlay error of a point on the true optical axis at depth_mm, seen from the estimate."""
     on_axis_c = np.array([[0.0, 0.0, depth_mm]])
-    point_w = transform_points(truth.T_w_c, on_axis_c)
+    point_w = transform_points(T_w_c_true, on_axis_c)
     uv_true, _ = camera.project(on_axis_c)
     uv_est, valid = camera.project(transform_points(invert_T(T_w_c_est), point_w))
     px = float(np.linalg.norm(uv_est[0] - uv_true[0])) if bool(valid[0]) else math.inf
-    return Score(truth.s_mm, px, px * depth_mm / camera.fx)
+    return Score(s_true_mm, px, px * depth_mm / camera.fx)
+
+
+def aimed_errors(
+    regs: tuple[Registration, ...],
+    truth: SceneTruth,
+    rig: Rig,
+    camera: CameraModel,
+    target_w: FloatArray,
+) -> list[Score]:
+    """Each registration's error as overlay error at 3 m, were the camera aimed at target_w.
+
+    Where the head happens to point changes which pose errors show: a track-position error is
+    invisible along the optical axis. Users look at the workpiece, so the registered joint
+    values (track position, and the head's reading errors) are carried over to a camera turned
+    toward it from the true position, and scored there.
+    """
+    pan, tilt = rig.aim(truth.s_mm, target_w)
+    T_true = rig.T_w_c(truth.s_mm, pan, tilt)
+    return [
+        probe_error(
+            rig.T_w_c(
+                reg.s_mm, pan + reg.pan_rad - truth.pan_rad, tilt + reg.tilt_rad - truth.tilt_rad
+            ),
+            T_true,
+            truth.s_mm,
+            camera,
+        )
+        for reg in regs
+    ]
 
 
 def summary(values: list[float]) -> dict[str, float]:

@@ -34,6 +34,9 @@ from host.transport import Transport, create_transport
 FloatArray = NDArray[np.float64]
 LINKS = ("pty", "xbee", "can")
 SERIAL_BAUD = 115200
+# A camera hands a frame over after readout and transfer, not at exposure: for the Table 1
+# camera's 1280×1024 at 30 fps, about 20 ms. The frame keeps its exposure stamp.
+CAMERA_DELIVERY_S = 0.020
 
 
 class _Emulator(Protocol):
@@ -122,12 +125,14 @@ class SimCameraSource:
         fps: float = 30.0,
         render: bool = True,
         seed: int = 7,
+        delivery_s: float = CAMERA_DELIVERY_S,
     ) -> None:
         self.world = world
         self.rig = rig
         self.model = model
         self.workpiece = workpiece
         self.period_s = 1.0 / fps
+        self.delivery_s = delivery_s
         self.render = render
         self._cam = SyntheticCamera(camera, seed=seed)
         self._blank = np.zeros((2, 2, 3), np.uint8)
@@ -144,12 +149,16 @@ class SimCameraSource:
         if self._closed.is_set():
             return None
         truth = self.world.with_truth(lambda sim: sim.truth())
+        deliver_at = time.monotonic() + self.delivery_s
         stamp = self.world.host_time_ns(truth.time_s)
         T_w_c = self.rig.T_w_c(truth.s_wrapped_mm, truth.pan_rad, truth.tilt_rad)
         T_w_p = self.workpiece(stamp)
         image = self._blank
         if self.render:
             image = self._cam.render_scene(T_w_c, self.model, T_w_p).image
+        hold = deliver_at - time.monotonic()
+        if hold > 0 and self._closed.wait(hold):
+            return None
         self._index += 1
         scene = SceneTruth(T_w_c, T_w_p, truth.s_mm, truth.pan_rad, truth.tilt_rad)
         return Frame(self._index, image, stamp, scene)

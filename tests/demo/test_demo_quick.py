@@ -64,11 +64,24 @@ def test_fused_registration_beats_encoder_only_under_elongation(
     end_drift_px = plan.elongation * plan.loop_length_mm * CAMERA.fx / 3000.0
     assert dr["encoder_only_px"]["max"] > 0.5 * end_drift_px
     assert dr["marks_seen"] >= 2
-    assert dr["fused_px"]["rms"] < dr["encoder_only_px"]["rms"] / 5
-    # Away from the skip windows only sensor resolution and 1 ms of timing remain.
+    assert dr["range_fixes"] > 100  # the hall's walls seen along the straight and the corner
+    assert dr["skips_detected"] == len(plan.skips_at_fraction)
+    assert dr["scale_estimate"] == pytest.approx(1.0 + plan.elongation, abs=5e-4)
+    assert dr["fused_px"]["rms"] < dr["encoder_only_px"]["rms"] / 20
+    # Away from the skips only sensor resolution and 1 ms of timing remain.
     timing_mm = plan.loop_speed_mm_s * 1e-3
     bound_px = (_static_bound_mm() + timing_mm) * CAMERA.fx / 3000.0
     assert dr["fused_px_outside_skip_windows"]["rms"] < bound_px
+
+
+def test_a_tooth_skip_is_put_right_within_a_couple_of_frames(
+    demo: tuple[dict[str, Any], Path],
+) -> None:
+    dr = demo[0]["drift"]
+    # The rangefinder reads the wall at 100 Hz: a skip is seen within 10 ms plus the link's
+    # latency, well inside two frames at 30 fps.
+    assert len(dr["skip_frames"]) == len(Plan.quick().skips_at_fraction)
+    assert max(dr["skip_frames"]) <= 2
 
 
 def test_report_files_exist_and_parse(demo: tuple[dict[str, Any], Path]) -> None:
