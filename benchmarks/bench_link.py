@@ -1,5 +1,10 @@
 """Link session figures: command throughput over the in-memory transport, clock-sync accuracy.
 
+The synthetic clock-sync link is XBee-like, and its controller answers a probe at its next 1 kHz
+tick (a 0–1 ms wait), as the firmware does. Beside our estimator, the same probes go to two
+peers: ours without the controller's arrival stamp (the round-trip midpoint, what a controller
+that cannot stamp arrivals gets) and a naive midpoint fit.
+
 Run: python benchmarks/bench_link.py   (prints `metric: value` lines)
 """
 
@@ -46,7 +51,8 @@ async def command_rate(loss: float) -> tuple[float, int]:
 class NaiveMidpoint:
     """The peer: every probe's RTT midpoint, one least-squares line over the last 10 s.
 
-    What a first attempt does (no minimum-RTT selection, no decay, no outlier rejection).
+    What a first attempt does (no arrival stamp, no minimum-delay selection, no decay, no outlier
+    rejection).
     """
 
     WINDOW = 100  # probes: 10 s at 10 Hz
@@ -55,8 +61,8 @@ class NaiveMidpoint:
         self.samples: list[tuple[int, float]] = []
         self._last = 0
 
-    def add_probe(self, t0_ns: int, mcu_us: int, t1_ns: int) -> bool:
-        """Take the probe as (mcu µs extended past its wrap, midpoint ns)."""
+    def add_probe(self, t0_ns: int, mcu_us: int, t1_ns: int, rx_us: int | None = None) -> bool:
+        """Take the probe as (mcu µs extended past its wrap, midpoint ns); ignore the arrival."""
         self.samples.append((self._extend(mcu_us), (t0_ns + t1_ns) / 2))
         del self.samples[: -self.WINDOW]
         return True
@@ -80,13 +86,30 @@ class NaiveMidpoint:
         return value
 
 
-def clock_errors_us(seeds: int = 20, naive: bool = False) -> list[float]:
+class WithoutArrivalStamp(ClockSync):
+    """Our estimator fed as by a controller that cannot stamp arrivals (rx = reply time)."""
+
+    def add_probe(
+        self, t0_ns: int, mcu_ticks_32: int, t1_ns: int, rx_ticks_32: int | None = None
+    ) -> bool:
+        """Drop the arrival stamp."""
+        return super().add_probe(t0_ns, mcu_ticks_32, t1_ns)
+
+
+PEERS: dict[str, type[Any]] = {
+    "ours": ClockSync,
+    "no_rx": WithoutArrivalStamp,
+    "naive": NaiveMidpoint,
+}
+
+
+def clock_errors_us(seeds: int = 20, peer: str = "ours") -> list[float]:
     """Worst mapping error per seeded run of the XBee-like synthetic link."""
     worst = []
     for seed in range(seeds):
         rng = random.Random(seed)
         link = SimLink(rng)
-        sync: Any = NaiveMidpoint() if naive else ClockSync()
+        sync: Any = PEERS[peer]()
         t = run_probes(sync, link, 0, 90)
         errs = []
         for _ in range(200):
@@ -112,10 +135,13 @@ def main() -> None:
         print(f"link_commands_per_s_loss_{int(loss * 100)}pct: {rate:.0f}")
         print(f"link_retransmits_loss_{int(loss * 100)}pct: {retx}")
     worst = clock_errors_us()
-    naive = clock_errors_us(naive=True)
+    no_rx = clock_errors_us(peer="no_rx")
+    naive = clock_errors_us(peer="naive")
     print(f"clocksync_xbee_worst_error_us_median: {statistics.median(worst):.0f}")
+    print(f"clocksync_no_rx_stamp_xbee_worst_error_us_median: {statistics.median(no_rx):.0f}")
     print(f"naive_midpoint_xbee_worst_error_us_median: {statistics.median(naive):.0f}")
     print(f"clocksync_xbee_worst_error_us_max: {max(worst):.0f}")
+    print(f"clocksync_no_rx_stamp_xbee_worst_error_us_max: {max(no_rx):.0f}")
     print(f"naive_midpoint_xbee_worst_error_us_max: {max(naive):.0f}")
     print(f"clocksync_add_probe_us: {probe_cost_us():.0f}")
 

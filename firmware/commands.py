@@ -151,9 +151,14 @@ def _heartbeat(fw: Firmware, seq: int, msg: object) -> Reply | None:
 
 
 def _clock_sync(fw: Firmware, seq: int, msg: object) -> Reply:
-    """The controller clock, read as the reply is queued."""
+    """The controller clock when the probe arrived and now, as the reply is queued.
+
+    The host subtracts the difference (the probe's wait for this tick) from the round trip.
+    """
     assert isinstance(msg, m.ClockSync)
-    return m.ClockSyncReply(seq, msg.token, fw.hal.micros() & 0xFFFF_FFFF)
+    return m.ClockSyncReply(
+        seq, msg.token, fw.hal.micros() & 0xFFFF_FFFF, fw.frame_rx_us & 0xFFFF_FFFF
+    )
 
 
 def _reset(fw: Firmware, seq: int, msg: object) -> Reply:

@@ -83,6 +83,7 @@ class Firmware:
     index_latch: int | None  # index position this tick, extended counter coordinates
     index_seen: bool
     hello_seen: bool  # a HELLO since boot: until then acked commands other than stops are refused
+    frame_rx_us: int  # µs timer when the delimiter of the frame being handled arrived
     watchdog_armed: bool
     last_rx_tick: int
     _last_tx_tick: int  # when the controller last sent anything (heartbeat when idle)
@@ -115,9 +116,9 @@ class Firmware:
         self.now_us = self.hal.micros()
         self.ticks += 1
         self._read_sensors()
-        data = self.hal.link_read()
+        data, at_us = self.hal.link_read()
         if data:
-            self._receive(data)
+            self._receive(data, at_us)
         self._safety()
         if self.state is State.HOMING:
             self._homing()
@@ -244,6 +245,7 @@ class Firmware:
         self.index_latch = None
         self.index_seen = False
         self.hello_seen = False
+        self.frame_rx_us = self.now_us
         self.watchdog_armed = False
         self.last_rx_tick = 0
         self._frames_seen = self.counters.frames_in
@@ -285,10 +287,22 @@ class Firmware:
             back = _i32(raw - mark)
             self.tx.send(RefMark(self.now_us, _i32(self.enc_pos - back)))
 
-    def _receive(self, data: bytes) -> None:
-        """Handle every complete frame; any valid frame feeds the watchdog."""
-        for frame in self.rx.feed(data):
-            commands.handle(self, *frame)
+    def _receive(self, data: bytes, at_us: int) -> None:
+        """Handle every complete frame in the RX ring; any valid frame feeds the watchdog.
+
+        The HAL hands over the ring one delimiter at a time, each read stamped with the arrival
+        of its last byte, so a frame completed by a read arrived at that read's stamp.
+        """
+        hal, rx = self.hal, self.rx
+        while True:
+            for frame in rx.feed(data):
+                self.frame_rx_us = at_us
+                commands.handle(self, *frame)
+            if data[-1] != 0:
+                break  # no delimiter at the end: that was the rest of the ring
+            data, at_us = hal.link_read()
+            if not data:
+                break
         if self.counters.frames_in != self._frames_seen:
             self._frames_seen = self.counters.frames_in
             self.watchdog_armed = True

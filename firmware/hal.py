@@ -34,8 +34,16 @@ class Hal(Protocol):
     def inputs_read(self) -> int:
         """Digital inputs as `protocol.Inputs` bits: HOME, LIMIT_MIN, LIMIT_MAX, ESTOP_IN."""
 
-    def link_read(self) -> bytes:
-        """Bytes received from the host since the previous call (the RX ring's contents)."""
+    def link_read(self) -> tuple[bytes, int]:
+        """Received bytes up to the next frame delimiter, and the µs time the last one arrived.
+
+        Returns the RX ring's bytes up to and including the next 0x00 (all of them when no
+        delimiter is pending) with the `micros()` value captured when the last of those bytes
+        arrived, or (b"", 0) when the ring is empty; bytes not ending in 0x00 emptied it. On the
+        STM32 the UART's character-match interrupt on 0x00 (on CAN, the RX interrupt of a
+        frame's last segment) stores the timer and the ring position in a small FIFO beside the
+        DMA ring, so the stamp is the frame's arrival, not the tick that gets to it.
+        """
 
     def link_write(self, data: bytes) -> None:
         """Queue bytes for the host on the link's byte stream."""

@@ -2,14 +2,17 @@
 
 It plays the MCU's peripherals: the step timer (steps issued this tick, read by the runner),
 the encoder timer (reset to zero by a reset, 32-bit wrapping, index capture), GPIO, the UART's
-RX ring (bounded, overruns counted) and TX, the µs timer of the drifting crystal, the flash
-sector (in memory or a file), the head's servo interface, the rangefinder and the RNG.
+RX ring (bounded, overruns counted, each received chunk stamped with the µs time it arrived) and
+TX, the µs timer of the drifting crystal, the flash sector (in memory or a file), the head's
+servo interface, the rangefinder and the RNG.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import random
+from collections import deque
 
 from hil_sim.plant import MarkEvent, Plant
 from hil_sim.scenario import Scenario
@@ -28,7 +31,9 @@ class SimBoard:
         self.rng = rng
         self.steps = 0  # steps issued in the current tick, consumed by the runner
         self.mcu_us = scenario.clock.offset_us  # set by the runner at every tick
-        self.rx = bytearray()
+        # The RX ring as received: chunks with the µs time their last byte arrived.
+        self.rx: deque[tuple[bytes, int]] = deque()
+        self._rx_bytes = 0
         self.rx_overruns = 0
         self.tx = bytearray()
         self.flash_fail = False  # fault hook: programming the sector fails
@@ -74,13 +79,24 @@ class SimBoard:
         """The plant reports a mark crossing: capture the count as the timer would."""
         self._mark_capture = (event.encoder_abs_count - self._count_base) & MASK32
 
-    def link_read(self) -> bytes:
-        """Drain the RX ring."""
-        if not self.rx:
-            return b""
-        data = bytes(self.rx)
-        self.rx.clear()
-        return data
+    def link_read(self) -> tuple[bytes, int]:
+        """The ring up to and including its first delimiter (else all of it), and its stamp."""
+        rx = self.rx
+        if not rx:
+            return b"", 0
+        parts = []
+        while rx:
+            chunk, at_us = rx.popleft()
+            end = chunk.find(0) + 1
+            if 0 < end < len(chunk):
+                rx.appendleft((chunk[end:], at_us))  # the rest arrived with it
+                chunk = chunk[:end]
+            parts.append(chunk)
+            if end:
+                break
+        data = b"".join(parts)
+        self._rx_bytes -= len(data)
+        return data, at_us & MASK32
 
     def link_write(self, data: bytes) -> None:
         """Bytes for the host."""
@@ -89,6 +105,11 @@ class SimBoard:
     def micros(self) -> int:
         """The MCU µs counter."""
         return self.mcu_us & MASK32
+
+    def mcu_us_at(self, true_s: float) -> int:
+        """The µs counter (unwrapped) at plant time `true_s`: the crystal's offset and drift."""
+        clock = self.sc.clock
+        return clock.offset_us + math.floor(true_s * 1e6 * (1.0 + clock.drift_ppm * 1e-6))
 
     def flash_read(self) -> bytes:
         """The parameter sector."""
@@ -134,6 +155,7 @@ class SimBoard:
         self._count_base = self.plant.count_abs
         self.plant.index_abs = None
         self.rx.clear()
+        self._rx_bytes = 0
         self.steps = 0
 
     def random_u32(self) -> int:
@@ -142,13 +164,19 @@ class SimBoard:
 
     # ---- the wire side (used by the runner) -----------------------------------------------
 
-    def receive_from_host(self, data: bytes) -> None:
-        """Bytes arriving on the UART; an overflowing ring loses the excess."""
-        room = RX_RING_BYTES - len(self.rx)
+    def receive_from_host(self, data: bytes, at_us: int) -> None:
+        """Bytes arriving on the UART when the µs counter reads `at_us` (unwrapped).
+
+        The ring keeps the stamp with them, as the RX interrupt would; an overflowing ring loses
+        the excess.
+        """
+        room = RX_RING_BYTES - self._rx_bytes
         if len(data) > room:
             self.rx_overruns += len(data) - room
             data = data[:room]
-        self.rx += data
+        if data:
+            self.rx.append((bytes(data), at_us))
+            self._rx_bytes += len(data)
 
     def take_for_host(self) -> bytes:
         """Bytes the firmware sent since the previous call."""

@@ -63,9 +63,17 @@ class Simulation:
         """Run for a span of MCU time."""
         self.step(round(seconds * 1e6 / TICK_US))
 
-    def send(self, data: bytes) -> None:
-        """Bytes from the host to the firmware's UART (read at the next tick)."""
-        self.board.receive_from_host(data)
+    def send(self, data: bytes, at_s: float | None = None) -> None:
+        """Bytes from the host to the firmware's UART, read at the next tick.
+
+        They arrived at plant time `at_s`, by default now (the instant the next tick runs): the
+        board stamps them with the MCU clock of that moment, as the UART's RX interrupt would.
+        """
+        if at_s is None:
+            at_us = self._mcu_base_us + self.ticks * TICK_US
+        else:
+            at_us = self.board.mcu_us_at(at_s)
+        self.board.receive_from_host(data, at_us)
 
     def receive(self) -> bytes:
         """Bytes the firmware has sent since the previous call."""
@@ -117,22 +125,28 @@ class Simulation:
 class SimLinkPort:
     """Thread-safe byte-stream endpoint of the simulated controller's link.
 
-    `write_to_firmware` may be called from any thread. Bytes from the firmware go to the
+    `write_to_firmware` may be called from any thread; it stamps the bytes with the host
+    monotonic time (`clock_ns`) at which they arrive, so the runner can give the firmware their
+    true arrival time even when they arrive between ticks. Bytes from the firmware go to the
     receiver set with `set_receiver` (called on the simulator's thread: hop to your own
     loop with `loop.call_soon_threadsafe`), or, with no receiver, into a queue read with
     `read_from_firmware`.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        self._clock_ns = clock_ns
         self._lock = threading.Lock()
-        self._inbound = bytearray()
+        self._inbound: list[tuple[bytes, int]] = []
         self._outbound: queue.SimpleQueue[bytes] = queue.SimpleQueue()
         self._receiver: FirmwareBytes | None = None
 
     def write_to_firmware(self, data: bytes) -> None:
-        """Queue bytes for the firmware's UART."""
+        """Queue bytes for the firmware's UART, stamped with the time they arrive."""
+        if not data:
+            return
+        at_ns = self._clock_ns()
         with self._lock:
-            self._inbound += data
+            self._inbound.append((bytes(data), at_ns))
 
     def set_receiver(self, receiver: FirmwareBytes | None) -> None:
         """Deliver firmware bytes to this callable (None: queue them instead)."""
@@ -154,14 +168,14 @@ class SimLinkPort:
             pass
         return b"".join(chunks)
 
-    def take_inbound(self) -> bytes:
-        """Simulator side: the bytes written to the firmware since the previous call."""
+    def take_inbound(self) -> list[tuple[bytes, int]]:
+        """Simulator side: the chunks written to the firmware since the previous call.
+
+        In order, each with the host monotonic ns at which it arrived.
+        """
         with self._lock:
-            if not self._inbound:
-                return b""
-            data = bytes(self._inbound)
-            self._inbound.clear()
-            return data
+            chunks, self._inbound = self._inbound, []
+        return chunks
 
     def deliver(self, data: bytes) -> None:
         """Simulator side: hand firmware bytes to the receiver or the queue."""
@@ -199,6 +213,13 @@ class RealtimeRunner:
             raise RuntimeError("runner not started")
         t0_ns, true0_s = self.epoch
         return t0_ns + round((true_s - true0_s) / self.speed * 1e9)
+
+    def true_s_at(self, wall_ns: int) -> float:
+        """Plant time due at host monotonic time `wall_ns` (the inverse of `wall_ns_at`)."""
+        if self.epoch is None:
+            raise RuntimeError("runner not started")
+        t0_ns, true0_s = self.epoch
+        return true0_s + (wall_ns - t0_ns) * self.speed / 1e9
 
     def start(self) -> None:
         """Start the simulator thread."""
@@ -262,12 +283,16 @@ class RealtimeRunner:
         return self.epoch[0] + round((self.sim.ticks - self._start_tick) * self._tick_ns)
 
     def _run_tick(self) -> None:
-        """One tick under the lock, its link bytes in before and out after."""
+        """One tick under the lock, its link bytes in before and out after.
+
+        Bytes that arrived since the previous tick enter the UART stamped with the MCU time of
+        their arrival, not this tick's: the firmware's clock-sync replies tell the host how long
+        a probe waited for the tick.
+        """
         sim, port = self.sim, self.port
         with self.lock:
-            data = port.take_inbound()
-            if data:
-                sim.send(data)
+            for data, at_ns in port.take_inbound():
+                sim.send(data, self.true_s_at(at_ns))
             sim.step(1)
             out = sim.receive()
         if out:

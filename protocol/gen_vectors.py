@@ -30,7 +30,7 @@ from protocol.schema import (
 TYPICAL: dict[str, dict[str, Any]] = {
     "HELLO": {"protocol_version": PROTOCOL_VERSION, "schema_hash": 0x1B2C3D4E},
     # The host counts tokens up from 1; senders leave the padding at zero.
-    "CLOCK_SYNC": {"token": 1_234, "padding16": 0, "padding32": 0},
+    "CLOCK_SYNC": {"token": 1_234, "padding0": 0, "padding1": 0, "padding2": 0},
     "MOVE_TO": {"position_um": 2_500_000, "speed_um_s": 100_000, "accel_um_s2": 250_000},
     "ENCODER_SAMPLE": {
         "mcu_time_us": 123_456_789,

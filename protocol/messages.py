@@ -24,6 +24,10 @@ _ALL_INPUTS = sum(int(f) for f in Inputs)
 
 Seq = Annotated[int, field(U16, "", "sequence number of the command this answers")]
 McuTime = Annotated[int, field(U32, "µs", "controller clock at sampling; wraps every 2³² µs")]
+_PADDING = (
+    "zero; makes the probe as long on the wire as its reply so both directions take equally "
+    "long; ignored on receipt"
+)
 
 
 # ---- session -------------------------------------------------------------------------------
@@ -48,31 +52,15 @@ class Heartbeat:
 class ClockSync:
     """Ask for the controller clock; never retransmitted (a lost probe is just skipped)."""
 
-    # The host takes the midpoint of the round trip as the moment the controller read its clock,
-    # which is only right when both directions take equally long. On a byte-serial link a frame's
-    # time on the line grows with its length, so the probe carries padding that makes it exactly
-    # as long as CLOCK_SYNC_REPLY (a test in tests/protocol keeps the two equal). Senders send
-    # zeros; receivers ignore the values, so the full wire range stays valid on receipt and a
-    # later version may give these bytes a meaning.
+    # The host assumes the probe takes as long to reach the controller as the reply takes to come
+    # back. On a byte-serial link a frame's time on the line grows with its length, so the probe
+    # carries padding that makes it exactly as long as CLOCK_SYNC_REPLY (a test in tests/protocol
+    # keeps the two equal). Senders send zeros; receivers ignore the values, so the full wire
+    # range stays valid on receipt and a later version may give these bytes a meaning.
     token: Annotated[int, field(U32, "", "opaque value echoed in the reply")]
-    padding16: Annotated[
-        int,
-        field(
-            U16,
-            "",
-            "zero; makes the probe as long on the wire as its reply so both directions take "
-            "equally long; ignored on receipt",
-        ),
-    ] = 0
-    padding32: Annotated[
-        int,
-        field(
-            U32,
-            "",
-            "zero; makes the probe as long on the wire as its reply so both directions take "
-            "equally long; ignored on receipt",
-        ),
-    ] = 0
+    padding0: Annotated[int, field(U16, "", _PADDING)] = 0
+    padding1: Annotated[int, field(U32, "", _PADDING)] = 0
+    padding2: Annotated[int, field(U32, "", _PADDING)] = 0
 
 
 @message(0x04, H2C, acked=True, reply="ACK")
@@ -215,11 +203,22 @@ class Nak:
 
 @message(0x83, C2H)
 class ClockSyncReply:
-    """Controller clock read as the reply was queued for sending."""
+    """The controller clock when the probe arrived and when this reply was queued for sending."""
 
     req_seq: Seq
     token: Annotated[int, field(U32, "", "the probe's token")]
-    mcu_time_us: McuTime
+    mcu_time_us: Annotated[
+        int, field(U32, "µs", "controller clock read as this reply was queued; wraps every 2³² µs")
+    ]
+    rx_time_us: Annotated[
+        int,
+        field(
+            U32,
+            "µs",
+            "controller clock when the probe's last byte (its 0x00 delimiter) arrived; "
+            "equal to mcu_time_us if the controller cannot stamp arrivals",
+        ),
+    ]
 
 
 @message(0x84, C2H)

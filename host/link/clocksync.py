@@ -1,15 +1,16 @@
 """Map the controller's 32-bit microsecond clock to host monotonic nanoseconds.
 
 A pure estimator fed numbers, no I/O (the idea follows Klipper's clocksync.py; the code is ours).
-Each CLOCK_SYNC probe gives the host send time t0, the controller time read when the reply was
-queued, and the host receive time t1. The controller read its clock somewhere inside [t0, t1];
-the probes with the shortest round trip pin that instant best, so every probe is weighted by how
-far its RTT lies above the recent minimum. The fit is an exponentially decaying weighted linear
-regression of host time on extended controller time, so a constant drift costs nothing and old
-probes fade out. The fit is recomputed from the kept probes after each one, so a newly found
-lower minimum RTT re-weights the past instead of leaving early, slow probes trusted. Probes
-that disagree with the prediction by far more than their RTT can explain are rejected as
-outliers.
+Each CLOCK_SYNC probe gives four timestamps, as in NTP: the host send time t0, the controller
+time the probe arrived (rx), the controller time the reply was queued (tx), and the host receive
+time t1. The controller held the probe for tx − rx (waiting for its tick); the rest of the round
+trip, the *delay*, was spent on the link, and half of it is taken as the way out. The probes with
+the shortest delay pin the controller clock best, so every probe is weighted by how far its delay
+lies above the recent minimum. The fit is an exponentially decaying weighted linear regression of
+host time on extended controller time, so a constant drift costs nothing and old probes fade
+out. The fit is recomputed from the kept probes after each one, so a newly found lower minimum
+delay re-weights the past instead of leaving early, slow probes trusted. Probes that disagree
+with the prediction by far more than their delay can explain are rejected as outliers.
 
 No estimator can see a difference between the two legs' *minimum* delays; it shifts the mapping
 by half that difference. When a link's asymmetry is known, `outbound_fraction` corrects it.
@@ -28,10 +29,10 @@ NS_PER_S = 1_000_000_000
 
 DECAY_TIME_S = 60.0  # time constant of the regression: long enough to average jitter out
 HISTORY_PROBES = 900  # probes kept for the fit (90 s at 10 Hz)
-QUANTILE_WINDOW = 128  # recent probes whose RTT spread sets the cutoff (~13 s at 10 Hz)
-BASE_SIGMA_NS = 20_000  # floor of a probe's timing error even at the minimum RTT
-KEEP_FASTEST_FRACTION = 0.15  # share of probes, by RTT, that enter the fit
-MIN_EXCESS_CUTOFF_NS = 100_000  # never cut tighter than this above the minimum RTT
+QUANTILE_WINDOW = 128  # recent probes whose delay spread sets the cutoff (~13 s at 10 Hz)
+BASE_SIGMA_NS = 20_000  # floor of a probe's timing error even at the minimum delay
+KEEP_FASTEST_FRACTION = 0.15  # share of probes, by delay, that enter the fit
+MIN_EXCESS_CUTOFF_NS = 100_000  # never cut tighter than this above the minimum delay
 MIN_FIT_PROBES = 4  # below this the nominal rate is used for the slope
 PRIOR_SPAN_US = 1_000_000  # the slope leans on the nominal rate as if probes spanned ~1 s
 OUTLIER_SIGMAS = 6.0
@@ -45,10 +46,11 @@ class ClockEstimate:
 
     ns_per_tick: float  # host ns per controller tick (1000 at a perfect 1 MHz clock)
     drift_ppm: float  # deviation of the controller clock from its nominal rate
-    min_rtt_ns: int | None
+    min_delay_ns: float | None  # shortest round trip on the link, controller residence excluded
     probes_used: int
     filtered: int  # probes left out for a slow round trip
     outliers: int
+    inconsistent: int  # replies whose residence exceeded their round trip
     sigma_ns: float  # residual scatter of the weighted fit
 
 
@@ -58,7 +60,7 @@ class ClockSync:
     _fit: _Fit | None
 
     def __init__(self, mcu_clock_hz: int = 1_000_000, outbound_fraction: float = 0.5) -> None:
-        """`outbound_fraction`: share of the minimum RTT spent on the way to the controller."""
+        """`outbound_fraction`: share of the minimum delay spent on the way to the controller."""
         if mcu_clock_hz <= 0 or not 0.0 <= outbound_fraction <= 1.0:
             raise ValueError("mcu_clock_hz must be > 0 and outbound_fraction in [0, 1]")
         self.nominal_ns_per_tick = NS_PER_S / mcu_clock_hz
@@ -66,6 +68,7 @@ class ClockSync:
         self.probes_used = 0
         self.outliers = 0
         self.filtered = 0
+        self.inconsistent = 0
         self.reset()
 
     def reset(self) -> None:
@@ -92,21 +95,35 @@ class ClockSync:
         # Past half the wrap the stamp is slightly older than the newest: step back.
         return self._last_ext + (delta - WRAP_US if delta >= HALF_WRAP_US else delta)
 
-    def add_probe(self, t0_ns: int, mcu_ticks_32: int, t1_ns: int) -> bool:
-        """Feed one probe; True if it was used, False if rejected (slow round trip or outlier)."""
+    def add_probe(
+        self, t0_ns: int, mcu_ticks_32: int, t1_ns: int, rx_ticks_32: int | None = None
+    ) -> bool:
+        """Feed one probe; True if it was used, False if rejected (slow, outlier, inconsistent).
+
+        `t0_ns`, `t1_ns`: host send and receive times; `mcu_ticks_32`: controller clock as the
+        reply was queued; `rx_ticks_32`: controller clock when the probe arrived (None, or equal
+        to `mcu_ticks_32`, for a controller that cannot stamp arrivals: the plain midpoint).
+        """
         rtt = t1_ns - t0_ns
         if rtt < 0:
             return False
-        probe = _Probe(self.extend(mcu_ticks_32), t0_ns, rtt)
+        held = 0 if rx_ticks_32 is None else (mcu_ticks_32 - rx_ticks_32) & (WRAP_US - 1)
+        residence = held * self.nominal_ns_per_tick
+        if residence > rtt:
+            # The controller cannot have held the probe longer than the round trip: a wrong
+            # stamp (or, in a simulator, a tick that ran after its own time): nothing to learn.
+            self.inconsistent += 1
+            return False
+        probe = _Probe(self.extend(mcu_ticks_32), t0_ns, rtt - residence, residence)
         self._history.append(probe)
-        min_rtt = min(p.rtt for p in self._history)
-        if probe.rtt - min_rtt > self._excess_cutoff(min_rtt):
+        min_delay = min(p.delay for p in self._history)
+        if probe.delay - min_delay > self._excess_cutoff(min_delay):
             self.filtered += 1
             return False
-        if self._is_outlier(probe, min_rtt):
+        if self._is_outlier(probe, min_delay):
             probe.outlier = True
             return False
-        self._fit = self._solve(min_rtt)
+        self._fit = self._solve(min_delay)
         self.probes_used += 1
         return True
 
@@ -139,10 +156,11 @@ class ClockSync:
         return ClockEstimate(
             ns_per_tick=slope,
             drift_ppm=(self.nominal_ns_per_tick / slope - 1.0) * 1e6,
-            min_rtt_ns=min((p.rtt for p in self._history), default=None),
+            min_delay_ns=min((p.delay for p in self._history), default=None),
             probes_used=self.probes_used,
             filtered=self.filtered,
             outliers=self.outliers,
+            inconsistent=self.inconsistent,
             sigma_ns=math.sqrt(fit.rss / fit.w) if fit is not None else 0.0,
         )
 
@@ -159,18 +177,18 @@ class ClockSync:
             raise RuntimeError("clock sync has no probe yet")
         return self._fit
 
-    def _excess_cutoff(self, min_rtt: int) -> float:
-        """Keep only the fastest probes: their midpoint error is at most half their excess."""
-        recent = sorted(p.rtt for p in itertools.islice(reversed(self._history), QUANTILE_WINDOW))
+    def _excess_cutoff(self, min_delay: float) -> float:
+        """Keep only the fastest probes: their timing error is at most half their excess."""
+        recent = sorted(p.delay for p in itertools.islice(reversed(self._history), QUANTILE_WINDOW))
         quantile = recent[int(len(recent) * KEEP_FASTEST_FRACTION)]
-        return max(quantile - min_rtt, MIN_EXCESS_CUTOFF_NS)
+        return max(quantile - min_delay, MIN_EXCESS_CUTOFF_NS)
 
-    def _is_outlier(self, probe: _Probe, min_rtt: int) -> bool:
-        """A probe far off the prediction, beyond what its own RTT can explain."""
+    def _is_outlier(self, probe: _Probe, min_delay: float) -> bool:
+        """A probe far off the prediction, beyond what its own delay can explain."""
         fit = self._fit
         if fit is None or fit.sxx <= 0.0:
             return False
-        y, sigma2 = self._midpoint(probe, min_rtt)
+        y, sigma2 = self._host_time(probe, min_delay)
         residual = y - self.ext_to_host_ns(probe.x)
         limit = max(OUTLIER_SIGMAS * math.sqrt(sigma2 * fit.unit_var), OUTLIER_FLOOR_NS)
         if abs(residual) <= limit:
@@ -190,22 +208,23 @@ class ClockSync:
             return False
         return True
 
-    def _midpoint(self, probe: _Probe, min_rtt: int) -> tuple[float, float]:
-        """Host time of the controller's clock read, and the variance of that guess."""
-        excess = probe.rtt - min_rtt
-        # Beyond the minimum, the extra delay is equally likely on either leg: split it.
-        y = probe.t0 + self.outbound_fraction * min_rtt + excess / 2
+    def _host_time(self, probe: _Probe, min_delay: float) -> tuple[float, float]:
+        """Host time at which the controller queued the reply, and the variance of that guess."""
+        excess = probe.delay - min_delay
+        # Beyond the minimum, the extra delay is equally likely on either leg: split it. The
+        # probe reached the controller after its outbound leg and waited `residence` there.
+        y = probe.t0 + self.outbound_fraction * min_delay + excess / 2 + probe.residence
         return y, BASE_SIGMA_NS**2 + (excess / 2) ** 2
 
-    def _solve(self, min_rtt: int) -> _Fit:
+    def _solve(self, min_delay: float) -> _Fit:
         """Decaying weighted least squares over the kept probes (centred, numerically stable)."""
         newest = max(p.x for p in self._history)
-        cutoff = self._excess_cutoff(min_rtt)
+        cutoff = self._excess_cutoff(min_delay)
         acc = _Accumulator(newest, self._history[-1].t0)
         for p in self._history:
-            if p.outlier or p.rtt - min_rtt > cutoff:
+            if p.outlier or p.delay - min_delay > cutoff:
                 continue
-            y, sigma2 = self._midpoint(p, min_rtt)
+            y, sigma2 = self._host_time(p, min_delay)
             age_s = (newest - p.x) * self.nominal_ns_per_tick / NS_PER_S
             acc.add(p.x, y, math.exp(-age_s / DECAY_TIME_S) / sigma2)
         return acc.result(self.nominal_ns_per_tick)
@@ -215,9 +234,10 @@ class ClockSync:
 class _Probe:
     """One probe as kept for the fit."""
 
-    x: int  # extended controller ticks
+    x: int  # extended controller ticks when the reply was queued
     t0: int  # host send time, ns
-    rtt: int  # ns
+    delay: float  # round trip minus the controller's residence, ns
+    residence: float  # how long the controller held the probe, ns
     outlier: bool = False
 
 

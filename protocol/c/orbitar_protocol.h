@@ -17,7 +17,7 @@
 #include <string.h>
 
 #define ORB_PROTOCOL_VERSION 1u
-#define ORB_SCHEMA_HASH UINT32_C(0x24BC5002)
+#define ORB_SCHEMA_HASH UINT32_C(0xDFFB2840)
 #define ORB_HEADER_SIZE 5u
 #define ORB_CRC_SIZE 2u
 #define ORB_MAX_WIRE_FRAME 84u /* encoded bytes plus the 0x00 delimiter */
@@ -272,18 +272,20 @@ static inline int orb_heartbeat_in_range(const orb_heartbeat_t *m)
 
 /* ---- CLOCK_SYNC (0x03, host → controller): Ask for the controller clock; never retransmitted (a lost probe is just skipped). */
 #define ORB_MSG_CLOCK_SYNC 0x03u
-#define ORB_CLOCK_SYNC_SIZE 10u
+#define ORB_CLOCK_SYNC_SIZE 14u
 typedef struct {
     uint32_t token; /**< opaque value echoed in the reply */
-    uint16_t padding16; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
-    uint32_t padding32; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
+    uint16_t padding0; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
+    uint32_t padding1; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
+    uint32_t padding2; /**< zero; makes the probe as long on the wire as its reply so both directions take equally long; ignored on receipt */
 } orb_clock_sync_t;
 
 static inline size_t orb_clock_sync_encode(const orb_clock_sync_t *m, uint8_t *buf)
 {
     orb_put_u32(buf + 0, m->token);
-    orb_put_u16(buf + 4, m->padding16);
-    orb_put_u32(buf + 6, m->padding32);
+    orb_put_u16(buf + 4, m->padding0);
+    orb_put_u32(buf + 6, m->padding1);
+    orb_put_u32(buf + 10, m->padding2);
     return ORB_CLOCK_SYNC_SIZE;
 }
 
@@ -291,8 +293,9 @@ static inline int orb_clock_sync_decode(orb_clock_sync_t *m, const uint8_t *buf,
 {
     if (len != ORB_CLOCK_SYNC_SIZE) return -1;
     m->token = orb_get_u32(buf + 0);
-    m->padding16 = orb_get_u16(buf + 4);
-    m->padding32 = orb_get_u32(buf + 6);
+    m->padding0 = orb_get_u16(buf + 4);
+    m->padding1 = orb_get_u32(buf + 6);
+    m->padding2 = orb_get_u32(buf + 10);
     return 0;
 }
 
@@ -772,13 +775,14 @@ static inline int orb_nak_in_range(const orb_nak_t *m)
            m->state <= UINT32_C(6);
 }
 
-/* ---- CLOCK_SYNC_REPLY (0x83, controller → host): Controller clock read as the reply was queued for sending. */
+/* ---- CLOCK_SYNC_REPLY (0x83, controller → host): The controller clock when the probe arrived and when this reply was queued for sending. */
 #define ORB_MSG_CLOCK_SYNC_REPLY 0x83u
-#define ORB_CLOCK_SYNC_REPLY_SIZE 10u
+#define ORB_CLOCK_SYNC_REPLY_SIZE 14u
 typedef struct {
     uint16_t req_seq; /**< sequence number of the command this answers */
     uint32_t token; /**< the probe's token */
-    uint32_t mcu_time_us; /**< [µs] controller clock at sampling; wraps every 2³² µs */
+    uint32_t mcu_time_us; /**< [µs] controller clock read as this reply was queued; wraps every 2³² µs */
+    uint32_t rx_time_us; /**< [µs] controller clock when the probe's last byte (its 0x00 delimiter) arrived; equal to mcu_time_us if the controller cannot stamp arrivals */
 } orb_clock_sync_reply_t;
 
 static inline size_t orb_clock_sync_reply_encode(const orb_clock_sync_reply_t *m, uint8_t *buf)
@@ -786,6 +790,7 @@ static inline size_t orb_clock_sync_reply_encode(const orb_clock_sync_reply_t *m
     orb_put_u16(buf + 0, m->req_seq);
     orb_put_u32(buf + 2, m->token);
     orb_put_u32(buf + 6, m->mcu_time_us);
+    orb_put_u32(buf + 10, m->rx_time_us);
     return ORB_CLOCK_SYNC_REPLY_SIZE;
 }
 
@@ -795,6 +800,7 @@ static inline int orb_clock_sync_reply_decode(orb_clock_sync_reply_t *m, const u
     m->req_seq = orb_get_u16(buf + 0);
     m->token = orb_get_u32(buf + 2);
     m->mcu_time_us = orb_get_u32(buf + 6);
+    m->rx_time_us = orb_get_u32(buf + 10);
     return 0;
 }
 

@@ -193,11 +193,57 @@ def test_clock_sync_reply_carries_mcu_time(rig: Rig) -> None:
 def test_clock_sync_padding_is_ignored_whatever_its_value(rig: Rig) -> None:
     # Senders send zeros, but a receiver must not refuse other values (a later version may
     # use those bytes): the probe is answered as usual.
-    seq = rig.client.send(ClockSync(0x5A5A, 0xFFFF, 0xFFFF_FFFF))
+    seq = rig.client.send(ClockSync(0x5A5A, 0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF))
     reply = rig.client.wait_reply(seq)
     assert isinstance(reply, ClockSyncReply)
     assert reply.token == 0x5A5A
     assert abs(reply.mcu_time_us - rig.sim.mcu_time_us) <= 2 * config.TICK_US
+
+
+def _clock_replies(rig: Rig, ticks: int) -> dict[int, ClockSyncReply]:
+    """Step, collecting clock-sync replies by token."""
+    rig.client.run(ticks)
+    return {m.token: m for m in rig.client.of_type(ClockSyncReply)}
+
+
+def test_clock_sync_reply_stamps_each_probe_with_its_arrival_between_ticks(rig: Rig) -> None:
+    # Two probes arrive at different moments between two ticks; the tick answers both, each
+    # with the µs time its delimiter arrived (as the RX interrupt captures it) and the tick's.
+    sim = rig.sim
+    sim.step(3)
+    tick_us = sim.mcu_time_us + config.TICK_US  # the tick that will run next
+    now_s = sim.time_s
+    early_s, late_s = now_s - 0.0008, now_s - 0.00025
+    sim.send(encode_frame(ClockSync(1), 100), at_s=early_s)
+    sim.send(encode_frame(ClockSync(2), 101), at_s=late_s)
+    replies = _clock_replies(rig, 1)
+    assert set(replies) == {1, 2}
+    for token, at_s, held_us in ((1, early_s, 800), (2, late_s, 250)):
+        reply = replies[token]
+        assert reply.mcu_time_us == tick_us & 0xFFFF_FFFF
+        assert reply.rx_time_us == sim.board.mcu_us_at(at_s) & 0xFFFF_FFFF
+        # 20 ppm fast crystal: the counter gains 0.02 µs per ms of true time.
+        assert reply.mcu_time_us - reply.rx_time_us in (held_us, held_us + 1)
+
+
+def test_clock_sync_arrival_is_the_delimiter_of_a_probe_split_across_ticks(rig: Rig) -> None:
+    sim = rig.sim
+    frame = encode_frame(ClockSync(3), 102)
+    sim.send(frame[:5], at_s=sim.time_s - 0.0005)
+    sim.step(2)  # the firmware reads the first bytes; the frame is not complete
+    delimiter_s = sim.time_s - 0.0001
+    sim.send(frame[5:] + encode_frame(ClockSync(4), 103)[:3], at_s=delimiter_s)
+    reply = _clock_replies(rig, 1)[3]
+    assert reply.rx_time_us == sim.board.mcu_us_at(delimiter_s) & 0xFFFF_FFFF
+    assert reply.rx_time_us < reply.mcu_time_us
+
+
+def test_clock_sync_probe_read_at_a_tick_arrived_at_its_time(rig: Rig) -> None:
+    # Sent between steps in lockstep, a probe arrives at the instant the next tick runs.
+    seq = rig.client.send(ClockSync(0x77))
+    reply = rig.client.wait_reply(seq)
+    assert isinstance(reply, ClockSyncReply)
+    assert reply.rx_time_us == reply.mcu_time_us
 
 
 def test_garbage_bytes_are_counted_not_fatal(rig: Rig) -> None:

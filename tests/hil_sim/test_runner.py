@@ -9,6 +9,7 @@ import time
 import pytest
 
 from firmware.config import TICK_US
+from hil_sim.board import RX_RING_BYTES
 from hil_sim.client import FrameClient
 from hil_sim.runner import MAX_CATCHUP_TICKS, RealtimeRunner, SimLinkPort, Simulation
 from hil_sim.scenario import ClockConfig, Scenario, TrackConfig
@@ -130,6 +131,23 @@ def test_reference_marks_are_reported_with_the_encoder_count() -> None:
     assert 0.4 < events[0].time_s < 0.8
 
 
+def test_board_hands_the_rx_ring_over_one_delimiter_at_a_time_with_arrival_stamps() -> None:
+    board = Simulation().board
+    board.receive_from_host(b"ab\x00cd", 10)
+    board.receive_from_host(b"e\x00\x00f", 20)
+    board.receive_from_host(b"g", (1 << 32) + 30)
+    assert board.link_read() == (b"ab\x00", 10)
+    assert board.link_read() == (b"cde\x00", 20)  # completed by the second chunk
+    assert board.link_read() == (b"\x00", 20)
+    assert board.link_read() == (b"fg", 30)  # no delimiter: the rest, stamped by its last byte
+    assert board.link_read() == (b"", 0)
+    board.receive_from_host(b"x" * (RX_RING_BYTES - 1), 40)
+    board.receive_from_host(b"yz\x00", 50)
+    assert board.rx_overruns == 2
+    board.system_reset()
+    assert board.link_read() == (b"", 0)
+
+
 def test_realtime_runner_serves_a_port_and_stops_cleanly() -> None:
     port = SimLinkPort()
     got: list[bytes] = []
@@ -169,9 +187,10 @@ def test_trolley_pose_follows_the_true_arc_length_on_the_runway() -> None:
 
 
 def _paced(sim: Simulation) -> tuple[RealtimeRunner, list[tuple[int, bytes]], list[int]]:
-    """A runner driven by a fake clock; firmware bytes are logged with the fake time they left."""
-    port = SimLinkPort()
+    """A runner driven by a fake clock; firmware bytes are logged with the fake time they left,
+    host bytes stamped with the fake time they arrived."""
     now = [FAKE_EPOCH_NS]
+    port = SimLinkPort(clock_ns=lambda: now[0])
     sent: list[tuple[int, bytes]] = []
     port.set_receiver(lambda data: sent.append((now[0], data)))
     return RealtimeRunner(sim, port=port), sent, now
@@ -207,6 +226,40 @@ def test_a_clock_sync_reply_leaves_within_a_tick_of_its_stamp() -> None:
     assert written_ns < stamp_ns <= left_ns
     # A reply leaving a tick after its stamp biases the host's clock mapping by that much.
     assert left_ns - stamp_ns < tick_ns / 4 + 1
+
+
+def test_bytes_arriving_between_ticks_are_stamped_with_their_arrival_not_the_tick() -> None:
+    sim = Simulation()  # a 20 ppm fast crystal
+    mcu0_us = sim.mcu_time_us
+    runner, sent, now = _paced(sim)
+    tick_ns = sim.dt_s * 1e9
+    runner.run_due(now[0])
+    arrivals: dict[int, int] = {}
+    for step in range(1, 46):  # four and a half ticks, paced in tenths of a tick
+        now[0] = FAKE_EPOCH_NS + round(step * tick_ns / 10)
+        if step in (23, 27):  # two probes between the same two ticks, and one a tick later
+            arrivals[step] = now[0]
+            runner.port.write_to_firmware(encode_frame(ClockSync(token=step), step))
+        runner.run_due(now[0])
+        if step == 34:
+            arrivals[step] = now[0]
+            runner.port.write_to_firmware(encode_frame(ClockSync(token=step), step))
+    replies = {
+        p.message.token: p.message
+        for _, data in sent
+        for p in FrameDecoder().feed(data)
+        if isinstance(p.message, ClockSyncReply)
+    }
+    assert set(replies) == set(arrivals)
+    for token, at_ns in arrivals.items():
+        reply = replies[token]
+        # The counter at the arrival: elapsed host time at the crystal's rate.
+        expected_us = mcu0_us + (at_ns - FAKE_EPOCH_NS) / 1000 * (1 + 20e-6)
+        assert abs(reply.rx_time_us - expected_us) <= 1
+        assert reply.rx_time_us < reply.mcu_time_us  # read at the next tick
+        assert reply.mcu_time_us - reply.rx_time_us < TICK_US
+    assert replies[23].mcu_time_us == replies[27].mcu_time_us
+    assert replies[27].rx_time_us - replies[23].rx_time_us == pytest.approx(TICK_US * 0.4, abs=1)
 
 
 def test_run_due_runs_the_tick_due_now_and_bounds_the_catch_up() -> None:

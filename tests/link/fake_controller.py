@@ -111,7 +111,7 @@ class FakeController:
         """One host frame."""
         if isinstance(msg, ClockSync):
             now_us = int(asyncio.get_running_loop().time() * 1e6) + self.mcu_offset_us
-            self.send(ClockSyncReply(seq, msg.token, now_us % (1 << 32)))
+            self.send(ClockSyncReply(seq, msg.token, now_us % (1 << 32), now_us % (1 << 32)))
             return
         if not flags & Flag.ACK_REQUESTED:
             return

@@ -17,7 +17,10 @@ TARGET_ERROR_NS = 200_000
 
 @dataclass
 class SimLink:
-    """A controller clock and an asymmetric, jittery, lossy radio link between it and the host."""
+    """A controller clock and an asymmetric, jittery, lossy radio link between it and the host.
+
+    The controller answers at its next tick, as the firmware does: a probe waits 0–1 tick there.
+    """
 
     rng: random.Random
     drift_ppm: float = DRIFT_PPM
@@ -27,18 +30,26 @@ class SimLink:
     back_base_ns: int = 1_900_000  # unobservable: costs (2.0 - 1.9) / 2 = 50 µs of bias
     back_jitter_ns: float = 1_000_000
     loss: float = 0.01
+    tick_us: int = 1000  # the controller handles frames every tick_us of its clock (0: at once)
 
     def mcu_at(self, host_ns: float) -> int:
         """True controller clock (64-bit) at a host time."""
         return self.offset_us + int(host_ns * (1 + self.drift_ppm * 1e-6) / 1000)
 
-    def probe(self, t0_ns: int) -> tuple[int, int, int] | None:
-        """One probe: (t0, mcu 32-bit, t1), or None if lost either way."""
+    def host_at(self, mcu_us: int) -> float:
+        """Host time at which the controller clock reaches a value."""
+        return (mcu_us - self.offset_us) * 1000 / (1 + self.drift_ppm * 1e-6)
+
+    def probe(self, t0_ns: int) -> tuple[int, int, int, int] | None:
+        """One probe: (t0, reply mcu 32-bit, t1, arrival mcu 32-bit), or None if lost."""
         if self.rng.random() < self.loss or self.rng.random() < self.loss:
             return None
-        read_ns = t0_ns + self.out_base_ns + self.rng.expovariate(1 / self.out_jitter_ns)
-        t1 = read_ns + self.back_base_ns + self.rng.expovariate(1 / self.back_jitter_ns)
-        return t0_ns, self.mcu_at(read_ns) % WRAP_US, int(t1)
+        arrive_ns = t0_ns + self.out_base_ns + self.rng.expovariate(1 / self.out_jitter_ns)
+        rx = self.mcu_at(arrive_ns)
+        tx = rx - rx % self.tick_us + self.tick_us if self.tick_us else rx
+        reply_ns = max(arrive_ns, self.host_at(tx))
+        t1 = reply_ns + self.back_base_ns + self.rng.expovariate(1 / self.back_jitter_ns)
+        return t0_ns, tx % WRAP_US, int(t1), rx % WRAP_US
 
 
 def run_probes(sync: ClockSync, link: SimLink, start_ns: int, seconds: float) -> int:
@@ -76,6 +87,52 @@ def test_mapping_error_within_target_on_xbee_like_link(seed: int) -> None:
     assert worst <= TARGET_ERROR_NS, f"worst mapping error {worst / 1000:.0f} µs"
     est = sync.estimate()
     assert est.drift_ppm == pytest.approx(DRIFT_PPM, abs=5.0)
+
+
+SERIAL_JITTER_NS = 200_000  # mean extra delay each way, on top of a 23-byte frame at 115200
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_arrival_stamp_removes_the_wait_for_the_controller_tick(seed: int) -> None:
+    # A symmetric serial-like link; the controller holds each probe until its next 1 kHz tick
+    # (0–1 ms, the phase sweeping slowly with the drift). Taken as part of the outbound leg,
+    # that wait maps every stamp early by half of it; the arrival stamp takes it out, and what
+    # is left comes from the legs' own jitter, which the fit averages over many probes.
+    rng = random.Random(seed)
+    link = SimLink(
+        rng, drift_ppm=20.0, out_base_ns=1_650_000, back_base_ns=1_650_000, loss=0.0,
+        out_jitter_ns=SERIAL_JITTER_NS, back_jitter_ns=SERIAL_JITTER_NS,
+    )  # fmt: skip
+    stamped, midpoint = ClockSync(), ClockSync()
+    t = 10**12
+    worst_stamped = worst_midpoint = 0.0
+    for second in range(90):
+        for _ in range(10):
+            probe = link.probe(t)
+            assert probe is not None
+            t0, mcu, t1, rx = probe
+            stamped.add_probe(t0, mcu, t1, rx)
+            midpoint.add_probe(t0, mcu, t1)  # what the host did before the arrival stamp
+            t += PROBE_PERIOD_NS
+        if second >= 30:
+            worst_stamped = max(worst_stamped, worst_error_ns(stamped, link, t, rng))
+            worst_midpoint = max(worst_midpoint, worst_error_ns(midpoint, link, t, rng))
+    assert worst_stamped < SERIAL_JITTER_NS / 4, f"{worst_stamped / 1000:.0f} µs"
+    assert worst_midpoint > SERIAL_JITTER_NS / 2, f"{worst_midpoint / 1000:.0f} µs"
+    assert stamped.estimate().inconsistent == 0
+
+
+def test_a_reply_held_longer_than_its_round_trip_is_ignored() -> None:
+    rng = random.Random(13)
+    link = SimLink(rng, loss=0.0)
+    sync = ClockSync()
+    t = run_probes(sync, link, 0, 5)
+    used = sync.probes_used
+    mcu = link.mcu_at(t + 2_000_000)
+    assert not sync.add_probe(t, mcu % WRAP_US, t + 4_000_000, (mcu - 5_000) % WRAP_US)
+    assert not sync.add_probe(t, mcu % WRAP_US, t + 4_000_000, (mcu + 1) % WRAP_US)  # after
+    assert sync.estimate().inconsistent == 2
+    assert sync.probes_used == used
 
 
 def test_uncertainty_tracks_the_real_error() -> None:

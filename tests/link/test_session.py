@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 from collections.abc import AsyncIterator
 
 import pytest
@@ -319,7 +320,39 @@ async def test_clock_probes_go_out_zero_padded_and_as_long_as_their_replies(
         if packets and isinstance(packets[0].message, ClockSync):
             probes.append((len(frame), packets[0].message))
     assert len(probes) >= 3
-    reply_len = len(encode_frame(ClockSyncReply(0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF), 0xFFFF))
+    reply = ClockSyncReply(0xFFFF, 0xFFFF_FFFF, 0xFFFF_FFFF, 0xFFFF_FFFF)
+    reply_len = len(encode_frame(reply, 0xFFFF))
     for length, probe in probes:
         assert length == reply_len
-        assert (probe.padding16, probe.padding32) == (0, 0)
+        assert (probe.padding0, probe.padding1, probe.padding2) == (0, 0, 0)
+
+
+async def test_clock_probe_waits_until_the_host_has_been_quiet(
+    fake: FakeController, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The heartbeat loop wakes at the probe rate. A probe written right behind a heartbeat would
+    # wait for it on a serial line: a delay on the way out only, which clock sync takes for
+    # asymmetry (it mapped every stamp ~0.5 ms early over the emulated 115200 Bd line).
+    cfg = SessionConfig(
+        heartbeat_interval_s=0.02, clock_sync_interval_s=0.02, clock_probe_quiet_s=0.008
+    )
+    session = await start(fake, cfg)
+    writes: list[tuple[float, bytes]] = []
+    send = session.transport.send
+
+    def stamped(frame: bytes) -> None:
+        writes.append((asyncio.get_running_loop().time(), bytes(frame)))
+        send(frame)
+
+    monkeypatch.setattr(session.transport, "send", stamped)
+    await session.handshake()
+    await asyncio.sleep(0.4)
+    await session.stop()
+    probes = 0
+    for (before, _), (at, frame) in itertools.pairwise(writes):
+        packets = FrameDecoder().feed(frame)
+        if packets and isinstance(packets[0].message, ClockSync):
+            probes += 1
+            assert at - before >= cfg.clock_probe_quiet_s - 1e-6
+    assert probes >= 5
+    assert session.stats.clock_replies >= 5
