@@ -144,6 +144,9 @@ class SimCameraSource:
         """Wait for the next frame time, then expose and render."""
         self._next += self.period_s
         delay = self._next - time.monotonic()
+        if delay < -self.period_s:  # fell behind (slow rendering): a camera skips, never bursts
+            self._next -= delay
+            delay = 0.0
         if delay > 0 and self._closed.wait(delay):
             return None
         if self._closed.is_set():
