@@ -54,13 +54,16 @@ STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
     "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
 }
 # With surveyed surfaces every reading is a drift fix, and the sooner one follows a tooth skip
-# the fewer frames carry it. The rangefinder takes what each link has room for; on serial the
-# encoder yields half its rate to it (100 Hz still interpolates a move to ~0.01 mm), which
-# leaves the line at ~67 % instead of ~74 % with 200 Hz encoder and 100 Hz range.
+# the fewer frames carry it. The rangefinder takes what each link has room for:
+# - serial: the encoder yields half its rate (100 Hz still interpolates a move to ~0.01 mm),
+#   which leaves the line at ~67 % instead of ~74 % with 200 Hz encoder and 100 Hz range;
+# - XBee: encoder and range at one rate fall on the same ticks and share an RF packet and its
+#   18 bytes of air overhead, so the air carries fewer bytes than 100 Hz encoder alone;
+# - CAN (500 kbit/s): 250 + 250 Hz is ~55 % of the bus, where 500 + 500 Hz would saturate it.
 RANGING_RATES_HZ: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 100, Stream.RANGE: 200},
-    "xbee": {Stream.RANGE: 40},
-    "can": {Stream.RANGE: 500},
+    "xbee": {Stream.ENCODER: 50, Stream.RANGE: 50},
+    "can": {Stream.ENCODER: 250, Stream.RANGE: 250},
 }
 
 
