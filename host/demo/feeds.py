@@ -14,6 +14,7 @@ from host.fusion.chain_filter import ChainFilter
 from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
 from host.registration.track_feed import PoseFeed
+from host.service.wiring import ENCODER_HORIZON_NS, HEAD_HORIZON_NS, MAX_GAP_NS
 
 ENCODER_CAPACITY = 8192  # 16 s at 500 Hz
 HEAD_CAPACITY = 2048
@@ -22,10 +23,10 @@ HEAD_CAPACITY = 2048
 def _feed(
     marks_mm: tuple[float, ...], pitch_mm: float, ranger: RangeFixer | None = None
 ) -> PoseFeed:
-    """A PoseFeed with buffers sized for the demo's longest lookups."""
+    """A PoseFeed with buffers sized for the demo's longest lookups, horizons as the daemon's."""
     return PoseFeed(
-        SampleBuffer(1, ENCODER_CAPACITY),
-        AngleBuffer(2, HEAD_CAPACITY),
+        SampleBuffer(1, ENCODER_CAPACITY, ENCODER_HORIZON_NS, MAX_GAP_NS),
+        AngleBuffer(2, HEAD_CAPACITY, HEAD_HORIZON_NS, MAX_GAP_NS),
         marks_mm=marks_mm,
         pitch_mm=lambda: pitch_mm,
         ranger=ranger,

@@ -20,6 +20,9 @@ from protocol.enums import Inputs
 
 DEFAULT_CHAIN_PITCH_MM = 12.7  # ISO 08B / ANSI 40 roller chain, when the controller has not said
 RAW_CAPACITY = 512  # uncorrected samples kept for late fixes (> 1 s at 500 Hz)
+# A reading may be stamped after the newest encoder sample (another stream, same tick or later):
+# the trolley is carried forward at most this far to place it; 50 Hz encoders need 20 ms.
+RAW_HORIZON_NS = 50_000_000
 
 
 @dataclasses.dataclass
@@ -51,7 +54,9 @@ class PoseFeed:
     ranges_seen: int = 0  # RANGE samples received
     ranges_unplaced: int = 0  # of those, not used: unhomed, or no encoder/head sample around
     homed: bool = False  # Inputs.HOMED of the latest encoder sample
-    _raw: SampleBuffer = dataclasses.field(default_factory=lambda: SampleBuffer(1, RAW_CAPACITY))
+    _raw: SampleBuffer = dataclasses.field(
+        default_factory=lambda: SampleBuffer(1, RAW_CAPACITY, RAW_HORIZON_NS)
+    )
 
     def __post_init__(self) -> None:
         if (self.marks_mm or self.ranger is not None) and self.chain is None:
@@ -121,9 +126,9 @@ class PoseFeed:
                 chain_scale=round(float(self.chain.x[1]), 7),
                 chain_offset_mm=round(float(self.chain.x[0]), 3),
                 position_sigma_mm=round(sigma, 3),
-                marks_used=self.chain.stats.updates,
+                references_used=self.chain.stats.updates,
+                references_rejected=self.chain.stats.rejected,
                 marks_unhomed=self.marks_unhomed,
-                marks_rejected=self.chain.stats.rejected,
                 marks_unassociated=self.chain.stats.unassociated,
                 skips_detected=self.chain.stats.skips_detected,
             )

@@ -75,8 +75,10 @@ def test_stretched_chain_is_corrected_after_two_marks() -> None:
     assert feed.encoder.window()[1][-1][0] == pytest.approx(feed.s_mm)  # the buffer holds fused
     stats = feed.stats()
     assert stats["chain_scale"] == pytest.approx(STRETCH, abs=2e-5)
-    assert stats["marks_seen"] == stats["marks_used"] == 7  # five, then two on the next lap
-    assert stats["marks_rejected"] == stats["marks_unassociated"] == stats["skips_detected"] == 0
+    assert stats["marks_seen"] == stats["references_used"] == 7  # five, then two on the next lap
+    assert (
+        stats["references_rejected"] == stats["marks_unassociated"] == stats["skips_detected"] == 0
+    )
     assert stats["position_sigma_mm"] < 0.5
     assert stats["raw_s_mm"] == pytest.approx(raw)
 
@@ -119,7 +121,7 @@ def test_far_mark_is_unassociated_not_applied() -> None:
     feed.on_mark(1, 2500.0)  # predicted 3500: 1500 mm from the nearest mark
     assert feed.chain is not None
     assert feed.stats()["marks_unassociated"] == 1
-    assert feed.stats()["marks_used"] == 0
+    assert feed.stats()["references_used"] == 0
     feed.on_encoder(2, 10.0, 0.0, HOMED)
     assert feed.s_mm == pytest.approx(HOME_S_MM + 10.0)
 
@@ -129,7 +131,7 @@ def test_marks_count_only_after_homing_and_rehoming_starts_afresh() -> None:
     feed.on_encoder(0, 995.0, 0.0, 0)  # power-up: the zero is wherever the trolley stood
     feed.on_mark(1, 995.0)
     assert feed.stats()["marks_unhomed"] == 1
-    assert feed.stats()["marks_used"] == 0
+    assert feed.stats()["references_used"] == 0
     feed.on_encoder(2, 0.0, 0.0, HOMED)
     feed.on_mark(3, (MARKS_MM[0] - HOME_S_MM) / STRETCH)
     assert feed.chain is not None
@@ -140,7 +142,7 @@ def test_marks_count_only_after_homing_and_rehoming_starts_afresh() -> None:
     feed.on_encoder(5, 0.0, 0.0, 0)  # HOME again: the encoder is re-referenced
     feed.on_encoder(6, 0.0, 0.0, HOMED)
     assert feed.chain is not before
-    assert feed.stats()["marks_used"] == 0
+    assert feed.stats()["references_used"] == 0
     assert feed.stats()["chain_scale"] == 1.0
 
 
