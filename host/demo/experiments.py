@@ -301,33 +301,19 @@ async def drift_experiment(
     finally:
         bench.collector.sink = None
     pitch_px = world.sim.scenario.chain.pitch_mm * bench.camera.fx / PROBE_DEPTH_MM
-    windows = skip_windows(fused_scores, skip_s, 0.5 * pitch_px)
-    corrected = bench.feed.corrected
+    ranger = bench.feed.corrected.ranger
     return {
         "elongation": plan.elongation,
         "tooth_skips": len(plan.skips_at_fraction),
         "marks_seen": bench.feed.marks_seen - marks_before,
         "references_used": bench.feed.chain.stats.updates,
-        "range_fixes": corrected.ranger.stats.fixes if corrected.ranger else 0,
+        "range_fixes": ranger.stats.fixes if ranger else 0,
         "skips_detected": bench.feed.chain.stats.skips_detected,
         "scale_estimate": float(bench.feed.chain.x[1]),
         "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),
         "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
         "fused_px": summary([sc.error_px for sc in fused_scores]),
-        # Between a skip and the first frame the fusion has put right again: how long that
-        # takes, and the error everywhere else.
-        "skip_frames": [end - start for start, end in windows],
-        "skip_travel_mm": [
-            fused_scores[min(end, len(fused_scores) - 1)].s_true_mm - fused_scores[start].s_true_mm
-            for start, end in windows
-        ],
-        "fused_px_outside_skip_windows": summary(
-            [
-                sc.error_px
-                for i, sc in enumerate(fused_scores)
-                if not any(start <= i < end for start, end in windows)
-            ]
-        ),
+        **skip_summary(fused_scores, skip_s, 0.5 * pitch_px),
         "trace": {
             "s_mm": [sc.s_true_mm for sc in raw_scores],
             "encoder_only_px": [sc.error_px for sc in raw_scores],
@@ -342,10 +328,12 @@ def _skip_tooth(sim: Simulation) -> float:
     return sim.truth().s_mm
 
 
-def skip_windows(
-    scores: list[Score], skips_mm: list[float], settled_px: float
-) -> list[tuple[int, int]]:
-    """Per skip, [first frame past it, first frame after that back under settled_px)."""
+def skip_summary(scores: list[Score], skips_mm: list[float], settled_px: float) -> dict[str, Any]:
+    """Per skip, the frames and travel until the fusion had put it right; the error elsewhere.
+
+    A skip's window runs from the first frame past it to the first frame after that back under
+    settled_px (half a pitch): the frames a user saw the overlay jump.
+    """
     windows = []
     for skip in skips_mm:
         start = next((i for i, sc in enumerate(scores) if sc.s_true_mm >= skip), len(scores))
@@ -354,7 +342,18 @@ def skip_windows(
             len(scores),
         )
         windows.append((start, end))
-    return windows
+    travel = [  # None: never put right before the run ended
+        scores[end].s_true_mm - scores[start].s_true_mm if end < len(scores) else None
+        for start, end in windows
+    ]
+    outside = [
+        sc.error_px for i, sc in enumerate(scores) if not any(a <= i < b for a, b in windows)
+    ]
+    return {
+        "skip_frames": [end - start for start, end in windows],
+        "skip_travel_mm": travel,
+        "fused_px_outside_skip_windows": summary(outside),
+    }
 
 
 def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:

@@ -235,7 +235,8 @@ def _drift_fmt(dr: dict[str, Any]) -> dict[str, str]:
         "skips": str(dr["tooth_skips"]),
         "found": str(dr["skips_detected"]),
         "frames": ", ".join(str(f) for f in dr["skip_frames"]) or "none",
-        "travel": ", ".join(f"{t:.0f}" for t in dr["skip_travel_mm"]) or "none",
+        "travel": ", ".join("∞" if t is None else f"{t:.0f}" for t in dr["skip_travel_mm"])
+        or "none",
         "scale": f"{dr['scale_estimate']:.5f}",
         "stretch": f"{1 + dr['elongation']:.5f}",
     }

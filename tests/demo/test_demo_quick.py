@@ -10,8 +10,9 @@ from typing import Any
 import pytest
 
 from hil_sim.scenario import Scenario
-from host.demo.experiments import Plan
+from host.demo.experiments import Plan, skip_summary
 from host.demo.run import run_demo
+from host.demo.scoring import Score
 from host.geometry.camera import CameraModel
 
 SC = Scenario()
@@ -94,3 +95,13 @@ def test_report_files_exist_and_parse(demo: tuple[dict[str, Any], Path]) -> None
     assert len(data["propagation"]["rows"]) == 4
     for row in data["propagation"]["rows"]:
         assert row["mc_agreement"] < 0.05
+
+
+def test_skip_summary_counts_the_frames_until_the_overlay_is_back() -> None:
+    errors = [0.1, 0.1, 15.0, 15.0, 0.2, 0.1, 16.0]
+    scores = [Score(100.0 * i, px, px) for i, px in enumerate(errors)]
+    got = skip_summary(scores, [200.0, 450.0, 600.0], settled_px=7.0)
+    assert got["skip_frames"] == [2, 0, 1]
+    assert got["skip_travel_mm"] == [200.0, 0.0, None]  # the last never came back
+    assert got["fused_px_outside_skip_windows"]["max"] == pytest.approx(0.2)
+    assert got["fused_px_outside_skip_windows"]["n"] == 4
