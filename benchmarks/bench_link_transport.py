@@ -14,8 +14,9 @@ the realistic ones: serial 115200 baud through the pty (or TCP) emulator, XBee a
 rate behind a 115200-baud UART, CAN at 500 kbit/s.
 
 The sustainable telemetry rate is the highest rate of the ladder at which at least 99 % of the
-encoder frames streamed for 2 s reach the host no later than 0.1 s after the window: emulated
-lines queue rather than drop, so lateness is what overload looks like.
+encoder frames streamed for 2 s reach the host no later than 0.1 s after the window: the wired
+emulators queue rather than drop, so lateness is what overload looks like there; the XBee
+modules' 202-byte buffers overflow and lose frames, as real ones do.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
 Each item occupies the line for `cost_bytes / rate_bytes_s` seconds after the previous one has
 left, then arrives `delay_s` later (latency and jitter from the fault injector). Arrival times
 never go backwards, so jitter delays but does not reorder a byte stream. One task per pipe.
+Pipes built on one `Line` take turns on it, as both directions of a half-duplex radio channel.
 """
 
 from __future__ import annotations
@@ -23,15 +24,32 @@ def uart_rate_bytes_s(baud: int) -> float:
     return baud / UART_BITS_PER_BYTE
 
 
+class Line:
+    """A medium one item at a time: when it is next free (monotonic seconds)."""
+
+    def __init__(self) -> None:
+        self.free_s = 0.0
+
+    def occupy(self, duration_s: float) -> float:
+        """Take the medium for `duration_s` as soon as it is free; returns when that ends."""
+        self.free_s = max(time.monotonic(), self.free_s) + duration_s
+        return self.free_s
+
+
 class PacedPipe(Generic[T]):
     """Deliver pushed items to `deliver` in order at the modelled rate."""
 
-    def __init__(self, deliver: Callable[[T], None], rate_bytes_s: float | None) -> None:
+    def __init__(
+        self,
+        deliver: Callable[[T], None],
+        rate_bytes_s: float | None,
+        line: Line | None = None,
+    ) -> None:
         self._deliver = deliver
         self._rate: float | None = None
         self.set_rate(rate_bytes_s)
         self._queue: collections.deque[tuple[float, T]] = collections.deque()
-        self._line_free_s = 0.0
+        self.line = line or Line()
         self._last_due_s = 0.0
         self._wake = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -58,17 +76,16 @@ class PacedPipe(Generic[T]):
             with contextlib.suppress(asyncio.CancelledError):
                 await task
 
-    def push(self, item: T, cost_bytes: int, delay_s: float = 0.0) -> None:
-        """Queue an item that occupies the line for `cost_bytes`."""
-        now = time.monotonic()
-        start = max(now, self._line_free_s)
-        self._line_free_s = start + (cost_bytes / self._rate if self._rate else 0.0)
-        due = max(self._line_free_s + delay_s, self._last_due_s)
+    def push(self, item: T, cost_bytes: int, delay_s: float = 0.0) -> float:
+        """Queue an item that occupies the line for `cost_bytes`; returns when it has left it."""
+        left_s = self.line.occupy(cost_bytes / self._rate if self._rate else 0.0)
+        due = max(left_s + delay_s, self._last_due_s)
         self._last_due_s = due
         self._queue.append((due, item))
         self.items += 1
         self.bytes += cost_bytes
         self._wake.set()
+        return left_s
 
     @property
     def backlog(self) -> int:

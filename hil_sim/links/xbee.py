@@ -7,15 +7,23 @@ device endpoint, and answers each request with a Transmit Status (0x8B) giving t
 the outcome. Bytes from the device are packetised at 0x00 frame delimiters, as the controller's
 firmware hands whole frames to its module, and arrive at the host as Receive Packets (0x90)
 from the controller module's 64-bit address.
+
+The air is one half-duplex channel: both modules' packets take turns on it, so what one
+direction sends is air time the other cannot use. Each module holds the data waiting for the air
+in its serial receive buffer, 202 bytes on an XBee 802.15.4 module; data that arrives while it
+is full is lost (neither UART here uses CTS flow control), as a real module loses it. Offered
+more than the air carries, the link loses frames at once instead of queueing them for ever.
 """
 
 from __future__ import annotations
 
+import collections
+import time
 from dataclasses import dataclass
 
 from hil_sim.links.endpoint import ByteEndpoint, FrameSplitter
 from hil_sim.links.faults import FaultConfig, FaultInjector
-from hil_sim.links.pacing import PacedPipe, uart_rate_bytes_s
+from hil_sim.links.pacing import Line, PacedPipe, uart_rate_bytes_s
 from hil_sim.links.pty_uart import PtyPort
 from protocol.xbee_frames import (
     MAX_RF_PAYLOAD,
@@ -33,6 +41,7 @@ AIR_RATE_BPS = 35_000  # effective 802.15.4 throughput after MAC overhead
 AIR_OVERHEAD_BYTES = 18  # MAC header, addresses, FCS per RF packet
 AIR_LATENCY_S = 0.002
 MAC_RETRIES = 3
+SERIAL_BUFFER_BYTES = 202  # the module's serial receive ("DI") buffer, XBee 802.15.4
 
 
 @dataclass
@@ -48,6 +57,47 @@ class ModuleCounters:
     unknown_frames: int = 0
     rx_packets: int = 0
     up_lost: int = 0
+    down_overflow: int = 0  # Transmit Requests lost in the host's module: its buffer was full
+    up_overflow: int = 0  # frames lost in the controller's module: its buffer was full
+
+
+class SerialBuffer:
+    """A module's serial receive buffer: RF data waiting for the air, at most `capacity` bytes.
+
+    A packet's data stays until its last MAC attempt has left the air (it may be retried).
+    """
+
+    def __init__(self, capacity: int = SERIAL_BUFFER_BYTES) -> None:
+        self.capacity = capacity
+        self.peak = 0
+        self._held: collections.deque[tuple[float, int]] = collections.deque()
+        self._bytes = 0
+
+    @property
+    def held(self) -> int:
+        """Bytes waiting for the air now."""
+        self._release(time.monotonic())
+        return self._bytes
+
+    def admit(self, size: int) -> bool:
+        """Whether `size` more bytes fit now."""
+        return self.held + size <= self.capacity
+
+    def hold(self, size: int, until_s: float) -> None:
+        """Keep `size` bytes until monotonic time `until_s`, when their packet has left."""
+        self._held.append((until_s, size))
+        self._bytes += size
+        self.peak = max(self.peak, self._bytes)
+
+    def clear(self) -> None:
+        """Power loss: everything held is gone."""
+        self._held.clear()
+        self._bytes = 0
+
+    def _release(self, now_s: float) -> None:
+        """Forget the packets that have left the air (they leave in order: one channel)."""
+        while self._held and self._held[0][0] <= now_s:
+            self._bytes -= self._held.popleft()[1]
 
 
 @dataclass(frozen=True, slots=True)
@@ -83,14 +133,18 @@ class XBeeModule:
         self.air_down = FaultInjector(base)
         self.air_up = FaultInjector(FaultConfig(**{**vars(base), "seed": base.seed + 1}))
         self.counters = ModuleCounters()
+        self.air_bytes = 0  # air time used, both ways, in bytes: every MAC attempt and overhead
         self.port = PtyPort(self._from_uart, link_path)
         self._decoder = ApiFrameDecoder(escaped=self.escaped)
         self._splitter = FrameSplitter(MAX_RF_PAYLOAD)
-        air_rate = air_rate_bps / 8
+        air_rate = self._air_rate = air_rate_bps / 8
+        air = Line()  # one channel for both directions
+        self.down_buffer = SerialBuffer()  # in the host's module
+        self.up_buffer = SerialBuffer()  # in the controller's module
         self._uart_in: PacedPipe[bytes] = PacedPipe(self._on_uart, uart_rate_bytes_s(uart_baud))
         self._uart_out: PacedPipe[bytes] = PacedPipe(self.port.write, uart_rate_bytes_s(uart_baud))
-        self._air_down: PacedPipe[_AirPacket] = PacedPipe(self._arrive_device, air_rate)
-        self._air_up: PacedPipe[bytes] = PacedPipe(self._arrive_host, air_rate)
+        self._air_down: PacedPipe[_AirPacket] = PacedPipe(self._arrive_device, air_rate, air)
+        self._air_up: PacedPipe[bytes] = PacedPipe(self._arrive_host, air_rate, air)
         self._pipes = (self._uart_in, self._uart_out, self._air_down, self._air_up)
 
     @property
@@ -122,6 +176,8 @@ class XBeeModule:
             self.air_down.note_disconnect()
         for pipe in self._pipes:
             await pipe.stop()
+        self.down_buffer.clear()
+        self.up_buffer.clear()
         self.port.close()
 
     async def reconnect(self) -> None:
@@ -157,13 +213,21 @@ class XBeeModule:
             self.counters.wrong_address += 1
             self._status(request.frame_id, MAC_RETRIES, DeliveryStatus.MAC_ACK_FAILURE)
             return
+        size = len(request.data)
+        if not self.down_buffer.admit(size):
+            # Its bytes overran the buffer: the module never saw a whole frame, so no status.
+            self.counters.down_overflow += 1
+            return
         attempts, data = _attempts(self.air_down, request.data)
-        airtime = attempts * (len(request.data) + AIR_OVERHEAD_BYTES)
+        airtime = attempts * (size + AIR_OVERHEAD_BYTES)
+        self.air_bytes += airtime
         if data is None:
-            self._air_down.push(_AirPacket(b"", request.frame_id, MAC_RETRIES), airtime)
+            packet = _AirPacket(b"", request.frame_id, MAC_RETRIES)
+            self.down_buffer.hold(size, self._air_down.push(packet, airtime))
             return
         packet = _AirPacket(data, request.frame_id, attempts - 1)
-        self._air_down.push(packet, airtime, self.latency_s + self.air_down.delay_s())
+        delay_s = self.latency_s + self.air_down.delay_s()
+        self.down_buffer.hold(size, self._air_down.push(packet, airtime, delay_s))
 
     def _arrive_device(self, packet: _AirPacket) -> None:
         """The air is done with a packet: hand it to the device and report to the host."""
@@ -186,12 +250,19 @@ class XBeeModule:
     def _from_device(self, data: bytes) -> None:
         """The controller's module packetises whole frames from its UART."""
         for frame in self._splitter.feed(data):
+            if not self.up_buffer.admit(len(frame)):
+                self.counters.up_overflow += 1
+                continue
             attempts, out = _attempts(self.air_up, frame)
             airtime = attempts * (len(frame) + AIR_OVERHEAD_BYTES)
+            self.air_bytes += airtime
             if out is None:
+                # Every attempt failed: the air was busy all the same, and nothing arrives.
+                self.up_buffer.hold(len(frame), self._air_up.line.occupy(airtime / self._air_rate))
                 self.counters.up_lost += 1
                 continue
-            self._air_up.push(out, airtime, self.latency_s + self.air_up.delay_s())
+            delay_s = self.latency_s + self.air_up.delay_s()
+            self.up_buffer.hold(len(frame), self._air_up.push(out, airtime, delay_s))
 
     def _arrive_host(self, data: bytes) -> None:
         """Receive Packet from the controller's module onto the host UART."""

@@ -26,6 +26,8 @@ class Link(abc.ABC):
 
     name = "link"
     datagram_unit = True  # each fault unit towards the host is exactly one wire frame
+    # Spacing of frames sent in a row, so that a stream stays within what the link carries.
+    frame_gap_s = 0.002
 
     def __init__(self, tmp: Path, faults_to_host: FaultConfig | None = None) -> None:
         self.tmp = tmp
@@ -110,6 +112,9 @@ class XBeeLink(Link):
     """XBee API frames over a pty to the emulated module pair."""
 
     api_mode = 1
+    # The air carries ~100 encoder frames a second in all, retries included, and a module buffers
+    # only 202 bytes (7 such frames): faster, frames are lost in the module.
+    frame_gap_s = 0.016
 
     def build(self) -> XBeeModule:
         """The module emulation."""

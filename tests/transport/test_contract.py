@@ -44,11 +44,11 @@ def heartbeat(seq: int) -> bytes:
     return encode_frame(build(Heartbeat, seq * 10), seq)
 
 
-async def send_telemetry(link: Link, n: int, period_s: float = 0.002) -> None:
+async def send_telemetry(link: Link, n: int) -> None:
     """The controller streams n encoder samples, spaced so no line saturates."""
     for i in range(n):
         link.controller.send_sample(i * 1000)
-        await asyncio.sleep(period_s)
+        await asyncio.sleep(link.frame_gap_s)
 
 
 class TransportContract:
@@ -93,6 +93,8 @@ class TransportContract:
         transport, rx = opened
         for seq in range(40):
             transport.send(heartbeat(seq))
+            if seq % 8 == 7:  # bursts a radio module's buffer holds
+                await asyncio.sleep(8 * link.frame_gap_s)
         packets = await rx.wait_packets(40, timeout_s=10.0)
         assert [value(p, "uptime_ms") for p in packets] == [s * 10 for s in range(40)]
         assert rx.decoder.drops.total() == 0

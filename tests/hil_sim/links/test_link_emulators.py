@@ -14,13 +14,19 @@ import pytest
 from hil_sim.links.can_node import SlcanAdapter
 from hil_sim.links.endpoint import FakeController, FrameSplitter, LoopbackEndpoint, build
 from hil_sim.links.faults import FaultConfig, FaultInjector
-from hil_sim.links.pacing import PacedPipe
+from hil_sim.links.pacing import Line, PacedPipe
 from hil_sim.links.pty_uart import PtyUart
 from hil_sim.links.tcp import TcpLink
-from hil_sim.links.xbee import CONTROLLER_ADDR64, XBeeModule
+from hil_sim.links.xbee import (
+    AIR_OVERHEAD_BYTES,
+    AIR_RATE_BPS,
+    CONTROLLER_ADDR64,
+    SERIAL_BUFFER_BYTES,
+    XBeeModule,
+)
 from host.transport import create_transport
-from protocol import encode_frame
-from protocol.messages import Heartbeat
+from protocol import FrameDecoder, encode_frame
+from protocol.messages import EncoderSample, Heartbeat
 from protocol.xbee_frames import (
     ApiFrameDecoder,
     TransmitRequest,
@@ -104,6 +110,20 @@ async def test_paced_pipe_keeps_order_under_jitter() -> None:
     assert got == list(range(50))
 
 
+async def test_paced_pipes_on_one_line_take_turns() -> None:
+    line = Line()
+    a: PacedPipe[int] = PacedPipe(lambda _: None, 1000.0, line)
+    b: PacedPipe[int] = PacedPipe(lambda _: None, 1000.0, line)
+    alone: PacedPipe[int] = PacedPipe(lambda _: None, 1000.0)
+    start = time.monotonic()
+    a_left = a.push(1, 100)  # 0.1 s on the line
+    b_left = b.push(2, 50)  # waits for a's item: the line is theirs together
+    alone_left = alone.push(3, 50)  # a line of its own is free
+    assert a_left - start == pytest.approx(0.1, abs=0.02)
+    assert b_left - a_left == pytest.approx(0.05)
+    assert alone_left - start == pytest.approx(0.05, abs=0.02)
+
+
 async def test_pty_uart_enforces_the_baud_rate(tmp_path: Path) -> None:
     baud = 19200
     uart = PtyUart(LoopbackEndpoint(), baud)
@@ -166,7 +186,8 @@ async def test_xbee_statuses_report_retries_and_failures(tmp_path: Path) -> None
         n = 60
         for seq in range(n):
             transport.send(encode_frame(build(Heartbeat, seq), seq))
-            await asyncio.sleep(0.004)
+            # ~2 attempts of 31 bytes each take ~14 ms of air: faster, the module's buffer fills
+            await asyncio.sleep(0.02)
         counters = module.counters
         extra = transport.stats.extra
         for _ in range(300):  # the air is slow with half the attempts lost
@@ -269,3 +290,96 @@ async def test_tcp_link_serves_one_host_at_a_time() -> None:
             await writer.wait_closed()
     finally:
         await link.stop()
+
+
+AIR_BYTES_S = AIR_RATE_BPS / 8
+SAMPLE_AIR_BYTES = 26 + AIR_OVERHEAD_BYTES  # an ENCODER_SAMPLE frame in its RF packet
+
+
+def _sample(n: int) -> bytes:
+    """Encoder frame number n (its mcu_time carries n)."""
+    return encode_frame(build(EncoderSample, n, n, n, 1000, 0), n & 0xFFFF)
+
+
+async def _stream_up(controller: FakeController, rate_hz: float, duration_s: float) -> list[float]:
+    """Send numbered encoder samples at rate_hz; returns each one's send time (loop clock)."""
+    loop = asyncio.get_running_loop()
+    sent: list[float] = []
+    start = loop.time()
+    while (now := loop.time()) - start < duration_s:
+        while len(sent) < (now - start) * rate_hz:
+            sent.append(loop.time())
+            controller.send(build(EncoderSample, len(sent) - 1, 0, 0, 1000, 0))
+        await asyncio.sleep(0.002)
+    return sent
+
+
+async def test_xbee_overload_loses_frames_instead_of_queueing_them(tmp_path: Path) -> None:
+    """Offered twice what the air carries, the controller's module fills its buffer and drops:
+    what arrives is never late by more than a buffer's worth of air time."""
+    controller = FakeController()
+    module = XBeeModule(controller, api_mode=2, link_path=str(tmp_path / "xb"))
+    await module.start()
+    transport = create_transport(
+        "xbee", url=module.path, dest_addr64=CONTROLLER_ADDR64, baudrate=115200, api_mode=2
+    )
+    loop = asyncio.get_running_loop()
+    arrived: dict[int, float] = {}  # sample number → arrival time
+    decoder = FrameDecoder()
+    rx = Collector()
+
+    def on_bytes(data: bytes) -> None:
+        rx.on_bytes(data)  # for settle()
+        for packet in decoder.feed(data):
+            arrived[int(getattr(packet.message, "mcu_time_us"))] = loop.time()  # noqa: B009
+
+    transport.set_receiver(on_bytes, rx.on_lost)
+    await transport.open()
+    try:
+        rate_hz = 2 * AIR_BYTES_S / SAMPLE_AIR_BYTES  # ~200 Hz against ~100 packets/s of air
+        sent = await _stream_up(controller, rate_hz, 2.0)
+        await rx.settle(quiet_s=0.3)
+        counters = module.counters
+        assert counters.up_overflow > len(sent) // 4
+        assert len(arrived) + counters.up_overflow == len(sent)  # nothing else went missing
+        assert module.up_buffer.peak <= SERIAL_BUFFER_BYTES
+        buffer_air_s = SERIAL_BUFFER_BYTES / 26 * SAMPLE_AIR_BYTES / AIR_BYTES_S  # ~78 ms
+        worst = max(arrived[n] - sent[n] for n in arrived)
+        assert worst < buffer_air_s + 0.1, f"frames {worst:.2f} s late: the air queues"
+    finally:
+        await transport.close()
+        await module.stop()
+
+
+async def test_xbee_directions_share_one_channel(tmp_path: Path) -> None:
+    """60 % of the air each way fits either way alone, not both at once: the channel is shared."""
+    controller = FakeController()
+    module = XBeeModule(controller, api_mode=1, link_path=str(tmp_path / "xb"))
+    await module.start()
+    transport = create_transport(
+        "xbee", url=module.path, dest_addr64=CONTROLLER_ADDR64, baudrate=115200, api_mode=1
+    )
+    rx = Collector()
+    rx.attach(transport)
+    await transport.open()
+    try:
+        rate_hz = 0.6 * AIR_BYTES_S / SAMPLE_AIR_BYTES
+
+        async def down() -> None:
+            loop = asyncio.get_running_loop()
+            start, n = loop.time(), 0
+            while (now := loop.time()) - start < 2.0:
+                while n < (now - start) * rate_hz:
+                    transport.send(_sample(n))
+                    n += 1
+                await asyncio.sleep(0.002)
+
+        sent_up, _ = await asyncio.gather(_stream_up(controller, rate_hz, 2.0), down())
+        await rx.settle(quiet_s=0.3)
+        counters = module.counters
+        assert counters.up_overflow + counters.down_overflow > 0
+        assert module.air_bytes <= AIR_BYTES_S * 2.5  # the air carried no more than it can
+        assert len(rx.packets) + counters.up_overflow == len(sent_up)
+    finally:
+        await transport.close()
+        await module.stop()
