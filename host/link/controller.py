@@ -3,12 +3,15 @@
 Commands return when the controller acknowledged them; a NAK raises ControllerRejected; while
 the link is not up they raise LinkDown at once instead of waiting. Streams and parameters set
 through this API are remembered and re-applied after every reconnect (parameters only after a
-controller reset: otherwise they are still in force). Motions are never re-sent.
+controller reset: otherwise they are still in force). Motions are never re-sent. With a
+`SheddingConfig`, streams run slower than asked while the link loses the controller's frames
+(`host.link.shedding`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -20,6 +23,7 @@ from typing import Protocol
 from host.link.common import LinkError, LinkEvent, LinkState
 from host.link.reconnect import BackoffConfig, Supervisor
 from host.link.session import SEQ_MOD, Session, SessionConfig, enum_or_int
+from host.link.shedding import Shedder, SheddingConfig
 from host.transport.base import Transport
 from protocol import Packet
 from protocol.enums import Fault, State, Stream
@@ -148,6 +152,7 @@ class Controller:
     backoff: BackoffConfig = field(default_factory=BackoffConfig)
     on_event: Callable[[LinkEvent, str], None] | None = None
     seed: int | None = None
+    shedding: SheddingConfig | None = None  # None: the streams always run at the rates asked for
 
     def __post_init__(self) -> None:
         self.session = Session(self.transport, self.session_config, on_packet=self._on_packet)
@@ -166,6 +171,8 @@ class Controller:
         self._status_changed = asyncio.Event()
         self._last_position_mm: float | None = None
         self._updated_ns: int | None = None
+        self.shedder = None if self.shedding is None else Shedder(self.shedding)
+        self._shed_task: asyncio.Task[None] | None = None
 
     # ---- connection ----------------------------------------------------------------------
 
@@ -173,11 +180,23 @@ class Controller:
         """Open the transport, handshake, switch on the streams; reconnects automatically after."""
         await self.supervisor.connect()
         assert self.identity is not None
+        if self.shedder is not None and self._shed_task is None:
+            self._shed_task = asyncio.create_task(self._shed_loop(self.shedder), name="link-shed")
         return self.identity
 
     async def close(self) -> None:
         """Stop everything; commands raise LinkDown afterwards."""
+        task, self._shed_task = self._shed_task, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
         await self.supervisor.close()
+
+    @property
+    def telemetry_scale(self) -> float:
+        """Fraction of the requested stream rates in force (below 1 while shedding)."""
+        return 1.0 if self.shedder is None else self.shedder.scale
 
     @property
     def link_state(self) -> LinkState:
@@ -240,10 +259,27 @@ class Controller:
         )
 
     async def set_streams(self, rates_hz: dict[Stream, int]) -> None:
-        """Switch streams on (rate) or off (0); remembered across reconnects."""
+        """Switch streams on (rate) or off (0); remembered across reconnects.
+
+        While the link sheds telemetry the controller gets the scaled rate. The rate is noted
+        before it is sent, so that a rescale meanwhile includes it; a scale that changed while
+        the command was on its way means sending it again.
+        """
         for stream, rate in rates_hz.items():
-            await self._command(StreamSet(int(stream), int(rate)))
+            previous = self._streams.get(stream)
             self._streams[stream] = int(rate)
+            try:
+                while True:
+                    sent = self._stream_rate(int(rate))
+                    await self._command(StreamSet(int(stream), sent))
+                    if self._stream_rate(int(rate)) == sent:
+                        break
+            except BaseException:
+                if previous is None:
+                    del self._streams[stream]
+                else:
+                    self._streams[stream] = previous
+                raise
 
     async def get_param(self, param_id: int) -> int:
         """Read a parameter."""
@@ -288,10 +324,54 @@ class Controller:
         self._status = None
         self._status_changed.set()  # wake motion waiters: a reboot ends their motions
         for stream, rate in self._streams.items():
-            await self.session.request(StreamSet(int(stream), rate))
+            await self.session.request(StreamSet(int(stream), self._stream_rate(rate)))
         if rebooted:
             for pid, value in self._params.items():
                 await self.session.request(ParamSet(pid, value))
+
+    def _stream_rate(self, requested_hz: int) -> int:
+        """The rate the controller is asked for: as requested, or scaled while shedding."""
+        return requested_hz if self.shedder is None else self.shedder.rate(requested_hz)
+
+    async def _shed_loop(self, shedder: Shedder) -> None:
+        """Each window: count the controller's frames received and lost; rescale the streams."""
+        stats = self.session.stats
+        seen: tuple[int, int] | None = None
+        while True:
+            await asyncio.sleep(shedder.config.window_s)
+            if self.link_state is not LinkState.UP:
+                seen = None  # a reconnect restarts the seq count: start a fresh window
+                continue
+            now = (stats.frames_in, stats.rx_lost)
+            if seen is not None:
+                received, lost = now[0] - seen[0], now[1] - seen[1]
+                cuts = shedder.cuts
+                if shedder.observe(received, lost):
+                    level = logging.WARNING if shedder.cuts > cuts else logging.INFO
+                    log.log(
+                        level,
+                        "telemetry at %.0f %% of its rates (%d of %d frames lost in %g s)",
+                        shedder.scale * 100,
+                        lost,
+                        received + lost,
+                        shedder.config.window_s,
+                    )
+                    await self._rescale_streams()
+                    now = (stats.frames_in, stats.rx_lost)  # the change took a window of its own
+            seen = now
+
+    async def _rescale_streams(self) -> None:
+        """Send every stream that is on its scaled rate, all at once (the window allows it)."""
+        on = [(stream, rate) for stream, rate in self._streams.items() if rate > 0]
+        results = await asyncio.gather(
+            *(self._command(StreamSet(int(s), self._stream_rate(r))) for s, r in on),
+            return_exceptions=True,
+        )
+        for (stream, _), result in zip(on, results, strict=True):
+            if isinstance(result, LinkError):
+                log.warning("could not rescale %s: %s", stream.name, result)
+            elif isinstance(result, BaseException):
+                raise result
 
     def _forward_event(self, event: LinkEvent, detail: str) -> None:
         """Pass link events to the user."""

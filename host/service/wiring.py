@@ -35,6 +35,7 @@ from host.link import Controller
 from host.link.common import LinkDown, LinkEvent, LinkState
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
+from host.link.shedding import SheddingConfig
 from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_RANGE
 from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
 from host.registration.track_feed import PoseFeed
@@ -47,24 +48,41 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SPEED_MM_S = 100.0  # the paper's camera speed, when a move names none
 DEFAULT_ACCEL_MM_S2 = 500.0
-# Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN).
+# Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN),
+# leaving room for commands, their replies and retransmissions.
+#
+# XBee budget. The air carries ~35 kbit/s = 4375 B/s, for both directions (one half-duplex
+# channel), and each wire frame is one RF packet with 18 bytes of air overhead, so a packet costs
+# its frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44, RANGE_SAMPLE 36, HEAD_SAMPLE 39, STATUS 43. The
+# session's 10 Hz clock sync costs 10 × (41 + 41) = 820 B/s (9 % each way, 19 %) whatever the
+# streams. Without ranging: 30 × 44 + 10 × 39 + 2 × 43 + 820 = 2616 B/s = 60 %; with ranging:
+# 25 × 44 + 15 × 36 + 10 × 39 + 2 × 43 + 820 = 2936 B/s = 67 %. The rest carries commands (a
+# full window of 8 MOVE_TO and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries. Beyond
+# the air's rate a module's 202-byte buffer overflows and loses replies as often as telemetry:
+# 100 Hz encoder alone (4400 B/s) was already more than the air carries, and the daemon sheds
+# telemetry on XBee when that happens (`XBEE_SHEDDING`). The rates' floors: 25 Hz encoder keeps
+# a sample within 40 ms of any instant (horizon 50 ms), 10 Hz head within 100 ms (horizon
+# 150 ms); STATUS is also sent on every state change.
 STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 200, Stream.HEAD: 50, Stream.STATUS: 20},
-    "xbee": {Stream.ENCODER: 100, Stream.HEAD: 20, Stream.STATUS: 10},
+    "xbee": {Stream.ENCODER: 30, Stream.HEAD: 10, Stream.STATUS: 2},
     "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
 }
 # With surveyed surfaces every reading is a drift fix, and the sooner one follows a tooth skip
 # the fewer frames carry it. The rangefinder takes what each link has room for:
 # - serial: the encoder yields half its rate (100 Hz still interpolates a move to ~0.01 mm),
 #   which leaves the line at ~67 % instead of ~74 % with 200 Hz encoder and 100 Hz range;
-# - XBee: encoder and range at one rate fall on the same ticks and share an RF packet and its
-#   18 bytes of air overhead, so the air carries fewer bytes than 100 Hz encoder alone;
+# - XBee: 15 Hz, the encoder yielding 5 Hz (budget above);
 # - CAN (500 kbit/s): 250 + 250 Hz is ~55 % of the bus, where 500 + 500 Hz would saturate it.
 RANGING_RATES_HZ: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 100, Stream.RANGE: 200},
-    "xbee": {Stream.ENCODER: 50, Stream.RANGE: 50},
+    "xbee": {Stream.ENCODER: 25, Stream.RANGE: 15},
     "can": {Stream.ENCODER: 250, Stream.RANGE: 250},
 }
+
+# On XBee the MAC retries every packet, so the controller's frames go missing mostly when a
+# module's buffer overflows: then the daemon slows the streams until they fit the air again.
+XBEE_SHEDDING = SheddingConfig()
 
 
 def stream_rates(kind: str, ranging: bool) -> dict[Stream, int]:
@@ -216,6 +234,7 @@ class LinkController:
         out["drops"] = stats.drops.total()
         out["rtt_ms"] = None if stats.rtt.srtt_s is None else round(stats.rtt.srtt_s * 1e3, 3)
         out["unsynced_samples"] = self.ctrl.unsynced_samples
+        out["telemetry_scale"] = self.ctrl.telemetry_scale
         if self.track_feed is not None:
             out.update(self.track_feed.stats())
         return out
@@ -262,7 +281,10 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
     def on_event(event: LinkEvent, detail: str) -> None:
         record_tap(KIND_EVENT, time.monotonic_ns(), {"link_event": event.value, "detail": detail})
 
-    ctrl = Controller(build_transport(config), session, backoff, on_event=on_event)
+    shedding = XBEE_SHEDDING if config.link.kind == "xbee" else None
+    ctrl = Controller(
+        build_transport(config), session, backoff, on_event=on_event, shedding=shedding
+    )
     ranging = bool(config.rangefinder.surfaces)
     adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
     ctrl.add_sink(RecordingSink(record_tap, adapter))

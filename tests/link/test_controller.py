@@ -13,6 +13,7 @@ from host.link.common import BadIdentity, ControllerRejected, LinkDown, LinkEven
 from host.link.controller import Controller, MotionFailed
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
+from host.link.shedding import SheddingConfig
 from protocol import PROTOCOL_VERSION, SCHEMA, cobs
 from protocol.crc import crc16
 from protocol.enums import NakCode, State, Stream
@@ -204,3 +205,48 @@ async def test_a_motion_across_a_controller_reboot_fails_at_once(rig) -> None:  
     # either way at once, never after the motion's 30 s timeout.
     with pytest.raises((MotionFailed, LinkDown)):
         await asyncio.wait_for(waiter, 5.0)
+
+
+SHED = SheddingConfig(window_s=0.05, min_frames=5, clean_s=0.1)
+
+
+async def test_lost_frames_shed_the_streams_until_the_link_is_clean() -> None:
+    fake = FakeController()
+    ctrl = Controller(fake.wire(), CFG, BACKOFF, seed=1, shedding=SHED)
+    await ctrl.connect()
+    try:
+        await ctrl.set_streams({Stream.ENCODER: 100})
+        assert fake.streams[int(Stream.ENCODER)] == 100
+        for _ in range(200):  # a third of the controller's frames lost
+            fake._seq += 1
+            fake.send_heartbeat()
+            fake.send_heartbeat()
+            await asyncio.sleep(0.005)
+            if fake.streams.get(int(Stream.ENCODER)) == 12:
+                break
+        assert ctrl.telemetry_scale == SHED.floor
+        assert fake.streams == {int(Stream.STATUS): 2, int(Stream.ENCODER): 12}
+        await ctrl.set_streams({Stream.HEAD: 40})  # asked for while shedding: scaled too
+        assert fake.streams[int(Stream.HEAD)] == 5
+        fake.reboot(0xBEEF)  # restored after the reset at the scaled rates
+        fake.send_heartbeat(10)
+        for _ in range(100):
+            await asyncio.sleep(0.02)
+            if ctrl.identity is not None and ctrl.identity.boot_id == 0xBEEF:
+                break
+        assert fake.streams[int(Stream.ENCODER)] == 12
+        for _ in range(300):  # clean again: back a step per clean stretch, to the full rates
+            fake.send_heartbeat()
+            await asyncio.sleep(0.005)
+            if ctrl.telemetry_scale == 1.0 and fake.streams.get(int(Stream.HEAD)) == 40:
+                break
+        assert fake.streams == {
+            int(Stream.STATUS): 20,
+            int(Stream.ENCODER): 100,
+            int(Stream.HEAD): 40,
+        }
+        assert ctrl.shedder is not None
+        assert ctrl.shedder.cuts == 3
+    finally:
+        await ctrl.close()
+        await fake.close()

@@ -12,6 +12,7 @@ from host.config import Config, loads_config
 from host.registration.track_feed import DEFAULT_CHAIN_PITCH_MM, PoseFeed
 from host.service.wiring import (
     STREAM_RATES_HZ,
+    XBEE_SHEDDING,
     PosePublisher,
     build_pose_source,
     controller_factory,
@@ -190,3 +191,15 @@ def test_surveyed_surfaces_give_the_feed_rangefinder_fixes() -> None:
     assert feed.ranger.stats.fixes == 40
     assert feed.s_mm == pytest.approx(100.0 + STRETCH * 39 * STEP_MM, abs=0.2)
     assert feed.stats()["range_fixes"] == 40
+
+
+def test_the_daemon_sheds_telemetry_on_xbee_only() -> None:
+    xbee = loads_config(
+        '[link]\nkind = "xbee"\nurl = "/dev/ttyUSB0"\nxbee_address = "0013A20040A1B2C3"\n'
+        '[camera]\nsource = "none"\n'
+    )
+    controller = controller_factory(xbee, lambda *rec: None)
+    assert controller.ctrl.shedding is XBEE_SHEDDING
+    assert controller.link_stats()["telemetry_scale"] == 1.0
+    serial = controller_factory(loads_config('[camera]\nsource = "none"\n'), lambda *rec: None)
+    assert serial.ctrl.shedding is None

@@ -1,0 +1,99 @@
+"""HIL over the emulated XBee pair: the daemon's Controller against the firmware in real time.
+
+At the rates the daemon streams over XBee, commands are acknowledged promptly and nothing piles
+up on the air. Offered more than the air carries, the modules' buffers overflow and lose replies
+as well as telemetry; the daemon then sheds telemetry, and commands get through again.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+
+from hil_sim.links.endpoint import SimPortEndpoint
+from hil_sim.links.xbee import AIR_RATE_BPS, CONTROLLER_ADDR64, XBeeModule
+from hil_sim.runner import RealtimeRunner, Simulation
+from hil_sim.scenario import Scenario
+from host.link import Controller
+from host.service.wiring import XBEE_SHEDDING, stream_rates
+from host.transport import create_transport
+from protocol.enums import Stream
+
+# What the daemon streamed over XBee before the air budget: ~130 % of the air.
+OVERLOAD_HZ = {Stream.ENCODER: 50, Stream.RANGE: 50, Stream.HEAD: 20, Stream.STATUS: 10}
+COMMAND_EVERY_S = 0.2
+ACK_WITHIN_S = 0.5  # a first-try round trip is ~40 ms; one retransmission fits too
+
+
+@pytest.fixture
+async def xbee(
+    tmp_path: Path, no_leftover_threads: None
+) -> AsyncIterator[tuple[Controller, XBeeModule]]:
+    """Firmware and plant in real time behind the module pair; the daemon's Controller."""
+    runner = RealtimeRunner(Simulation(Scenario(seed=1)))
+    endpoint = SimPortEndpoint(runner.port, asyncio.get_running_loop())
+    module = XBeeModule(endpoint, api_mode=2, link_path=str(tmp_path / "xb"))
+    await module.start()
+    runner.start()
+    transport = create_transport("xbee", url=module.path, dest_addr64=CONTROLLER_ADDR64, api_mode=2)
+    ctrl = Controller(transport, shedding=XBEE_SHEDDING)  # as the daemon wires it
+    try:
+        yield ctrl, module
+    finally:
+        await ctrl.close()
+        await module.stop()
+        runner.stop()
+
+
+async def _point_head(ctrl: Controller, duration_s: float) -> list[float]:
+    """HEAD_SET every COMMAND_EVERY_S for duration_s; each one's time to its ACK."""
+    loop = asyncio.get_running_loop()
+    end = loop.time() + duration_s
+    latencies: list[float] = []
+    while loop.time() < end:
+        sent = loop.time()
+        await ctrl.set_head(0.01 * (len(latencies) % 5), 0.0)
+        latencies.append(loop.time() - sent)
+        await asyncio.sleep(COMMAND_EVERY_S)
+    return latencies
+
+
+async def test_daemon_rates_fit_the_air(xbee: tuple[Controller, XBeeModule]) -> None:
+    ctrl, module = xbee
+    await ctrl.connect()
+    await ctrl.set_streams(stream_rates("xbee", ranging=True))
+    loop = asyncio.get_running_loop()
+    air_before, start = module.air_bytes, loop.time()
+    latencies = await _point_head(ctrl, 5.0)
+    air_share = (module.air_bytes - air_before) / (loop.time() - start) / (AIR_RATE_BPS / 8)
+    stats = ctrl.session.stats
+    assert max(latencies) < ACK_WITHIN_S, f"acks took up to {max(latencies):.2f} s"
+    assert stats.timeouts == 0
+    assert module.counters.up_overflow == module.counters.down_overflow == 0
+    assert stats.rx_lost == 0
+    assert module.up_buffer.peak < module.up_buffer.capacity
+    assert air_share < 0.75, f"the air is {air_share:.0%} busy"
+    assert ctrl.telemetry_scale == 1.0
+
+
+async def test_overloaded_air_sheds_telemetry_and_commands_get_through(
+    xbee: tuple[Controller, XBeeModule],
+) -> None:
+    ctrl, module = xbee
+    await ctrl.connect()
+    await ctrl.set_streams(OVERLOAD_HZ)
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + 5.0
+    while ctrl.telemetry_scale == 1.0 and loop.time() < deadline:
+        await asyncio.sleep(0.1)
+    assert module.counters.up_overflow > 0  # the air was overloaded
+    assert ctrl.telemetry_scale < 1.0
+    await asyncio.sleep(1.0)  # what was in the buffers when the cut arrived has left
+    overflow = module.counters.up_overflow
+    latencies = await _point_head(ctrl, 3.0)
+    assert max(latencies) < ACK_WITHIN_S, f"acks took up to {max(latencies):.2f} s"
+    assert ctrl.session.stats.timeouts == 0
+    assert module.counters.up_overflow - overflow < 10
