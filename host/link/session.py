@@ -324,7 +324,10 @@ class Session:
         try:
             self._transmit(entry, max_tries)
         except LinkDown as exc:
-            entry.future.set_exception(exc)
+            # A transport may report the loss from inside send(), and the halt that follows
+            # has already failed this command.
+            if not entry.future.done():
+                entry.future.set_exception(exc)
 
     async def _acquire_slot(self) -> None:
         """Wait, first come first served, until the window lets one more command out."""
@@ -387,6 +390,8 @@ class Session:
             entry.timer = None
         if self._inflight.get(entry.seq) is entry:
             del self._inflight[entry.seq]
+        if entry.future.done() and not entry.future.cancelled():
+            entry.future.exception()  # a halt may have failed it while the send itself raised
         self._wake_next_waiter()
 
     def _fail_pending(self, exc: Exception) -> None:

@@ -16,6 +16,7 @@ from host.link.common import (
     ProtocolMismatch,
 )
 from host.link.session import Session, SessionConfig
+from host.transport.base import TransportError
 from host.transport.memory import Impairment
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder, encode_frame
 from protocol.enums import NakCode, State
@@ -356,3 +357,34 @@ async def test_clock_probe_waits_until_the_host_has_been_quiet(
             assert at - before >= cfg.clock_probe_quiet_s - 1e-6
     assert probes >= 5
     assert session.stats.clock_replies >= 5
+
+
+async def test_a_retransmission_whose_send_loses_the_link_fails_the_command_once(
+    fake: FakeController,
+) -> None:
+    """A transport may report the loss (halting the session) from inside send(), then raise."""
+    session = await start(fake)
+    fake.silent = True
+    loop = asyncio.get_running_loop()
+    errors: list[dict[str, object]] = []
+    loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx))
+    real_send = session.transport.send
+    sends = 0
+
+    def send_then_die(frame: bytes) -> None:
+        nonlocal sends
+        sends += 1
+        if sends < 2:
+            real_send(frame)
+            return
+        session.halt("serial port vanished")  # what the transport's on_lost leads to
+        raise TransportError("write failed")
+
+    session.transport.send = send_then_die  # type: ignore[method-assign]
+    try:
+        with pytest.raises(LinkDown, match="vanished"):
+            await session.request(Stop())
+        await asyncio.sleep(0.05)
+    finally:
+        loop.set_exception_handler(None)
+    assert errors == []
