@@ -51,6 +51,8 @@ def parse_matrix4(value: Any) -> tuple[tuple[float, ...], ...]:
         raise ValueError("expected a 4×4 list of numbers")
     if any(isinstance(x, bool) or not isinstance(x, int | float) for r in rows for x in r):
         raise ValueError("expected numbers only")
+    if not all(math.isfinite(x) for r in rows for x in r):
+        raise ValueError("must be finite")
     if [float(x) for x in rows[3]] != [0.0, 0.0, 0.0, 1.0]:
         raise ValueError("the last row of a homogeneous transform must be [0, 0, 0, 1]")
     return tuple(tuple(float(x) for x in r) for r in rows)
@@ -83,6 +85,8 @@ def parse_vector3(value: Any) -> tuple[float, float, float]:
         raise ValueError("expected a list of 3 numbers")
     if any(isinstance(x, bool) or not isinstance(x, int | float) for x in value):
         raise ValueError("expected numbers only")
+    if not all(math.isfinite(x) for x in value):
+        raise ValueError("must be finite")
     return (float(value[0]), float(value[1]), float(value[2]))
 
 

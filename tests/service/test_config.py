@@ -227,3 +227,18 @@ def test_rangefinder_problems_are_named() -> None:
     assert any(p.startswith("rangefinder.surfaces[0].colour: unknown key") for p in found)
     assert "rangefinder.surfaces[0].normal = [0.0, 0.0, 0.0]: must not be zero" in found
     assert "rangefinder.surfaces[0].name: required" in found
+
+
+def test_non_finite_vectors_are_refused_by_key() -> None:
+    found = problems(
+        "[model]\nposition_mm = [inf, 0, 0]\n"
+        "[[rangefinder.surfaces]]\nname = 'w'\npoint_mm = [0, nan, 0]\nnormal = [1, 0, 0]\n"
+    )
+    assert "model.position_mm = [inf, 0, 0]: must be finite" in found
+    assert "rangefinder.surfaces[0].point_mm = [0, nan, 0]: must be finite" in found
+    found = problems(
+        "[rangefinder]\nmount = [[1, 0, 0, inf], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n"
+    )
+    assert len(found) == 1
+    assert found[0].endswith(": must be finite")
+    assert found[0].startswith("rangefinder.mount = ")
