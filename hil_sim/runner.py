@@ -292,7 +292,9 @@ class RealtimeRunner:
         sim, port = self.sim, self.port
         with self.lock:
             for data, at_ns in port.take_inbound():
-                sim.send(data, self.true_s_at(at_ns))
+                # A tick that runs late may find bytes that arrived after it was due: to the
+                # firmware they arrived just as this tick began, never after its own clock.
+                sim.send(data, min(self.true_s_at(at_ns), sim.time_s))
             sim.step(1)
             out = sim.receive()
         if out:

@@ -9,6 +9,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from host.config_fields import parse_matrix4, parse_vector3, spec
 
 IDENTITY_4 = (
@@ -62,6 +64,8 @@ def surface_problems(index: int, surface: SurfaceConfig) -> list[str]:
     problems = []
     if not surface.name:
         problems.append(f"{key}.name: required")
-    if math.hypot(*surface.normal) < 1e-9:
-        problems.append(f"{key}.normal = {list(surface.normal)}: must not be zero")
+    with np.errstate(over="ignore"):  # an overflow to inf is the answer, not a warning
+        norm = float(np.linalg.norm(surface.normal))  # as the geometry will normalise it
+    if not math.isfinite(norm) or norm < 1e-9:
+        problems.append(f"{key}.normal = {list(surface.normal)}: must be a non-zero vector")
     return problems

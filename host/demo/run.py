@@ -47,8 +47,8 @@ START_S_MM = 500.0  # where the trolley stands at power-on (the scenario's defau
 MARK_SPACING_MM = 1000.0  # reference marks along the track (magnets under a hall sensor)
 FIRST_MARK_MM = 400.0  # just past the home switch, so the chain scale is learnt early
 WORKPIECE_W = (-300.0, -300.0, 0.0)  # the robot's base on the floor, inside the runway
-# The hall around the runway (6 m × 3 m, centred on the world origin): its walls are surveyed,
-# so a rangefinder reading of one is an absolute reference of the track position.
+# A 12 m × 9 m hall around the runway (6 m × 3 m, centred on the world origin): its walls are
+# surveyed, so a rangefinder reading of one is an absolute reference of the track position.
 HALL = RangeScene(hall_walls(x_mm=(-6000.0, 6000.0), y_mm=(-4500.0, 4500.0)))
 
 

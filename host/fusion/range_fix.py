@@ -46,6 +46,8 @@ class RangeFixStats:
     ambiguous: int = 0
     weak: int = 0
     out_of_gate: int = 0
+    off_track: int = 0  # the inversion would leave an open track's ends
+    unconverged: int = 0
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,9 @@ class RangeFixer:
                 return None
             if abs(step) < RELINEARISE_MM:
                 break
+        else:
+            st.unconverged += 1
+            return None
         tan_inc = math.sqrt(max(0.0, 1.0 - hit.cos_incidence**2)) / hit.cos_incidence
         sigma_r = math.hypot(c.noise_mm, hit.distance_mm * tan_inc * c.head_sigma_rad)
         st.fixes += 1
@@ -97,6 +102,10 @@ class RangeFixer:
     def _slope(self, s_mm: float, pan: float, tilt: float) -> tuple[Hit, float] | None:
         """The hit at s and ∂r/∂s there, or None (counted) if the geometry is unusable."""
         st, c = self.stats, self.config
+        track = self.rig.track
+        if not track.closed and not STEP_MM <= s_mm <= track.length_mm - STEP_MM:
+            st.off_track += 1
+            return None
         hit = range_at(self.rig, self.scene, s_mm, pan, tilt)
         if hit is None:
             st.no_surface += 1

@@ -11,7 +11,6 @@ controller reset: otherwise they are still in force). Motions are never re-sent.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import time
@@ -182,15 +181,15 @@ class Controller:
         assert self.identity is not None
         if self.shedder is not None and self._shed_task is None:
             self._shed_task = asyncio.create_task(self._shed_loop(self.shedder), name="link-shed")
+            self._shed_task.add_done_callback(_shed_ended)
         return self.identity
 
     async def close(self) -> None:
         """Stop everything; commands raise LinkDown afterwards."""
         task, self._shed_task = self._shed_task, None
         if task is not None:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
+            task.cancel()  # an earlier failure was logged when it happened (_shed_ended)
+            await asyncio.gather(task, return_exceptions=True)
         await self.supervisor.close()
 
     @property
@@ -470,3 +469,9 @@ def _scaled(value: float, factor: float) -> int:
     if not math.isfinite(value):
         raise ValueError(f"expected a finite number, got {value}")
     return round(value * factor)
+
+
+def _shed_ended(task: asyncio.Task[None]) -> None:
+    """Log a shedding loop that stopped by an error (the streams then stay at their scale)."""
+    if not task.cancelled() and task.exception() is not None:
+        log.error("telemetry shedding stopped", exc_info=task.exception())

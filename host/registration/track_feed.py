@@ -161,8 +161,8 @@ class PoseFeed:
             raw = np.interp(times.astype(np.float64), t_raw.astype(np.float64), v_raw[:, 0])
             return (self.home_s_mm + chain.correct(raw))[:, None]
 
-        if len(t_raw):
-            self.encoder.revise(t_ns, corrected)
+        if len(t_raw):  # older samples than the raw ones kept cannot be recomputed
+            self.encoder.revise(max(t_ns, int(t_raw[0])), corrected)
             self.s_mm = self.home_s_mm + chain.estimate(float(v_raw[-1, 0]))[0]
 
     def _restart_filter(self) -> None:

@@ -59,7 +59,8 @@ DEFAULT_ACCEL_MM_S2 = 500.0
 # 25 × 44 + 15 × 36 + 10 × 39 + 2 × 43 + 820 = 2936 B/s = 67 %. The rest carries commands (a
 # full window of 8 MOVE_TO and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries. Beyond
 # the air's rate a module's 202-byte buffer overflows and loses replies as often as telemetry:
-# 100 Hz encoder alone (4400 B/s) was already more than the air carries, and the daemon sheds
+# 100 Hz encoder beside the clock sync (4400 + 820 B/s) is more than the air carries (the
+# transport benchmark's 100 Hz is encoder alone, without probes or other streams); the daemon sheds
 # telemetry on XBee when that happens (`XBEE_SHEDDING`). The rates' floors: 25 Hz encoder keeps
 # a sample within 40 ms of any instant (horizon 50 ms), 10 Hz head within 100 ms (horizon
 # 150 ms); STATUS is also sent on every state change.
@@ -328,9 +329,12 @@ def build_ranger(config: Config, rig: Rig) -> RangeFixer | None:
     rf = config.rangefinder
     if not rf.surfaces:
         return None
-    surfaces = tuple(
-        Surface(s.name, s.point_mm, s.normal, s.radius_mm or math.inf) for s in rf.surfaces
-    )
+    try:
+        surfaces = tuple(
+            Surface(s.name, s.point_mm, s.normal, s.radius_mm or math.inf) for s in rf.surfaces
+        )
+    except ValueError as exc:
+        raise WiringError(f"[rangefinder]: {exc}") from exc
     return RangeFixer(rig, RangeScene(surfaces), RangeFixConfig(noise_mm=rf.noise_mm))
 
 

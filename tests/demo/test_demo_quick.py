@@ -79,7 +79,7 @@ def test_a_tooth_skip_is_put_right_within_a_couple_of_frames(
     demo: tuple[dict[str, Any], Path],
 ) -> None:
     dr = demo[0]["drift"]
-    # The rangefinder reads the wall at 100 Hz: a skip is seen within 10 ms plus the link's
+    # The rangefinder reads the wall at 200 Hz: a skip is seen within 10 ms plus the link's
     # latency, well inside two frames at 30 fps.
     assert len(dr["skip_frames"]) == len(Plan.quick().skips_at_fraction)
     assert max(dr["skip_frames"]) <= 2

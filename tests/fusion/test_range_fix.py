@@ -147,3 +147,23 @@ def test_a_fix_corrects_the_samples_buffered_after_its_stamp() -> None:
     assert np.max(np.abs(late[:6])) < 0.5
     assert feed.chain is not None
     assert feed.chain.stats.skips_detected == 1
+
+
+def test_readings_near_an_open_tracks_ends_are_refused_not_raised() -> None:
+    from host.geometry.track import Track
+
+    straight = Track.from_config([{"kind": "straight", "length_mm": 3000.0}])
+    rig = Rig(track=straight)
+    fixer = RangeFixer(rig, HALL)
+    for s in (0.2, 2999.8):
+        hit = range_at(rig, HALL, s, *AHEAD)
+        assert hit is not None
+        assert fixer.fix(s, *AHEAD, hit.distance_mm) is None
+    assert fixer.stats.off_track == 2
+    assert fixer.fix(1500.0, *AHEAD, _hit_distance(rig, 1500.0)) is not None
+
+
+def _hit_distance(rig: Rig, s: float) -> float:
+    hit = range_at(rig, HALL, s, *AHEAD)
+    assert hit is not None
+    return hit.distance_mm

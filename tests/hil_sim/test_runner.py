@@ -274,3 +274,23 @@ def test_run_due_runs_the_tick_due_now_and_bounds_the_catch_up() -> None:
     assert sim.ticks == 1 + MAX_CATCHUP_TICKS
     assert runner.late_ticks == 500 - 1
     assert wait_ns < 0  # behind: the thread runs the rest without sleeping
+
+
+def test_bytes_arriving_after_a_late_tick_was_due_are_stamped_no_later_than_it() -> None:
+    sim = Simulation()
+    runner, sent, now = _paced(sim)
+    tick_ns = sim.dt_s * 1e9
+    runner.run_due(now[0])
+    # Tick 1 is due at 1.0 ticks; the probe arrives at 1.2 and the thread only wakes at 1.3.
+    now[0] = FAKE_EPOCH_NS + round(1.2 * tick_ns)
+    runner.port.write_to_firmware(encode_frame(ClockSync(token=5), 3))
+    now[0] = FAKE_EPOCH_NS + round(1.3 * tick_ns)
+    runner.run_due(now[0])
+    replies = [
+        p.message
+        for _, data in sent
+        for p in FrameDecoder().feed(data)
+        if isinstance(p.message, ClockSyncReply)
+    ]
+    assert len(replies) == 1
+    assert replies[0].rx_time_us <= replies[0].mcu_time_us  # never "arrived" after its handling

@@ -225,7 +225,7 @@ def test_rangefinder_problems_are_named() -> None:
     assert "rangefinder.surfaces[0].point_mm = [1, 2]: expected a list of 3 numbers" in found
     assert any(p.startswith("rangefinder.surfaces[0].radius_mm = -5: out of range") for p in found)
     assert any(p.startswith("rangefinder.surfaces[0].colour: unknown key") for p in found)
-    assert "rangefinder.surfaces[0].normal = [0.0, 0.0, 0.0]: must not be zero" in found
+    assert "rangefinder.surfaces[0].normal = [0.0, 0.0, 0.0]: must be a non-zero vector" in found
     assert "rangefinder.surfaces[0].name: required" in found
 
 
@@ -242,3 +242,10 @@ def test_non_finite_vectors_are_refused_by_key() -> None:
     assert len(found) == 1
     assert found[0].endswith(": must be finite")
     assert found[0].startswith("rangefinder.mount = ")
+
+
+def test_a_normal_too_large_to_normalise_is_refused_by_key() -> None:
+    found = problems("[[rangefinder.surfaces]]\nname = 'w'\nnormal = [1e200, 1e200, 0]\n")
+    assert found == [
+        "rangefinder.surfaces[0].normal = [1e+200, 1e+200, 0.0]: must be a non-zero vector"
+    ]
