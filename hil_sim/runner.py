@@ -206,6 +206,7 @@ class RealtimeRunner:
         self._tick_ns = sim.dt_s / speed * 1e9
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._held: list[tuple[bytes, float]] = []  # arrived after the running tick was due
 
     def wall_ns_at(self, true_s: float) -> int:
         """Host monotonic ns at which plant time `true_s` is (or was) due."""
@@ -291,10 +292,13 @@ class RealtimeRunner:
         """
         sim, port = self.sim, self.port
         with self.lock:
-            for data, at_ns in port.take_inbound():
-                # A tick that runs late may find bytes that arrived after it was due: to the
-                # firmware they arrived just as this tick began, never after its own clock.
-                sim.send(data, min(self.true_s_at(at_ns), sim.time_s))
+            # A tick that runs late finds bytes that arrived after it was due: in plant time
+            # they came after this tick, so they wait for the next one, stamped as they came.
+            arrived = self._held + [(d, self.true_s_at(at_ns)) for d, at_ns in port.take_inbound()]
+            self._held = [(d, at_s) for d, at_s in arrived if at_s > sim.time_s]
+            for data, at_s in arrived:
+                if at_s <= sim.time_s:
+                    sim.send(data, at_s)
             sim.step(1)
             out = sim.receive()
         if out:

@@ -44,6 +44,7 @@ STREAM_RATES_HZ = {
 # level, so the beam meets the hall's end walls nearly head-on on the straights.
 LOOK_AHEAD_PAN_RAD = 0.0
 LOOK_AHEAD_TILT_RAD = math.pi / 2
+SETTLED_PITCH_FRACTION = 0.125  # ~2 px: far above the fused error, far below a pitch's 15 px
 HOMING_RUN_UP_MM = 100.0  # drive to just before the home switch fast, then seek it slowly
 SETTLE_S = 0.2  # ring-down after the head reports it arrived
 HEAD_TIMEOUT_S = 10.0
@@ -313,7 +314,7 @@ async def drift_experiment(
         "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),
         "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
         "fused_px": summary([sc.error_px for sc in fused_scores]),
-        **skip_summary(fused_scores, skip_s, 0.5 * pitch_px),
+        **skip_summary(fused_scores, skip_s, SETTLED_PITCH_FRACTION * pitch_px),
         "trace": {
             "s_mm": [sc.s_true_mm for sc in raw_scores],
             "encoder_only_px": [sc.error_px for sc in raw_scores],
@@ -332,7 +333,9 @@ def skip_summary(scores: list[Score], skips_mm: list[float], settled_px: float) 
     """Per skip, the frames and travel until the fusion had put it right; the error elsewhere.
 
     A skip's window runs from the first frame past it to the first frame after that back under
-    settled_px (half a pitch): the frames a user saw the overlay jump.
+    settled_px (an eighth of a pitch): the frames a user saw the overlay jump, fully or in part
+    (a frame between the last uncorrected encoder sample and the first corrected one carries a
+    share of the pitch).
     """
     windows = []
     for skip in skips_mm:

@@ -276,7 +276,7 @@ def test_run_due_runs_the_tick_due_now_and_bounds_the_catch_up() -> None:
     assert wait_ns < 0  # behind: the thread runs the rest without sleeping
 
 
-def test_bytes_arriving_after_a_late_tick_was_due_are_stamped_no_later_than_it() -> None:
+def test_bytes_arriving_after_a_late_tick_was_due_wait_for_the_next_tick() -> None:
     sim = Simulation()
     runner, sent, now = _paced(sim)
     tick_ns = sim.dt_s * 1e9
@@ -286,6 +286,9 @@ def test_bytes_arriving_after_a_late_tick_was_due_are_stamped_no_later_than_it()
     runner.port.write_to_firmware(encode_frame(ClockSync(token=5), 3))
     now[0] = FAKE_EPOCH_NS + round(1.3 * tick_ns)
     runner.run_due(now[0])
+    assert not sent  # in plant time the probe came after tick 1: tick 2 answers it
+    now[0] = FAKE_EPOCH_NS + round(2.05 * tick_ns)
+    runner.run_due(now[0])
     replies = [
         p.message
         for _, data in sent
@@ -293,4 +296,5 @@ def test_bytes_arriving_after_a_late_tick_was_due_are_stamped_no_later_than_it()
         if isinstance(p.message, ClockSyncReply)
     ]
     assert len(replies) == 1
-    assert replies[0].rx_time_us <= replies[0].mcu_time_us  # never "arrived" after its handling
+    held_us = replies[0].mcu_time_us - replies[0].rx_time_us
+    assert held_us == pytest.approx(0.8 * TICK_US, abs=2)  # stamped as it came, read at tick 2
