@@ -9,9 +9,20 @@ from pathlib import Path
 from typing import Any
 
 from host.recording.reader import Record, RecordingReader
+from host.recording.writer import (
+    KIND_ENCODER,
+    KIND_EVENT,
+    KIND_FRAME,
+    KIND_HEAD,
+    KIND_LINK,
+    KIND_POSE,
+    KIND_RANGE,
+)
 
 ReplayCallback = Callable[[Record], Any]
-SAMPLE_KINDS = frozenset({"link", "encoder", "head", "range", "frame", "pose", "event"})
+SAMPLE_KINDS = frozenset(
+    {KIND_LINK, KIND_ENCODER, KIND_HEAD, KIND_RANGE, KIND_FRAME, KIND_POSE, KIND_EVENT}
+)
 
 
 @dataclass

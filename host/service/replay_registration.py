@@ -43,18 +43,29 @@ class ReplayRegistration:
         self.source, self.feed = build_pose_source(
             config, REPLAY_RATES_HZ, config.camera.exposure_latency_ms
         )
+        self.malformed = 0  # sample records missing a field or holding a wrong type: skipped
 
     def __call__(self, record: Record) -> dict[str, Any] | None:
         """Feed one record; return the re-registered pose for frame and pose records."""
+        try:
+            return self._feed(record)
+        except (KeyError, TypeError, ValueError):
+            self.malformed += 1
+            return None
+
+    def _feed(self, record: Record) -> dict[str, Any] | None:
+        """__call__ for a well-formed record (a bad field raises)."""
         d = record.data if isinstance(record.data, dict) else {}
         if record.kind == KIND_ENCODER:
-            self.feed.on_encoder(record.t_ns, d["s_mm"], d.get("v_mm_s", 0.0), d.get("inputs", 0))
+            s_mm, v_mm_s = float(d["s_mm"]), float(d.get("v_mm_s", 0.0))
+            self.feed.on_encoder(record.t_ns, s_mm, v_mm_s, int(d.get("inputs", 0)))
         elif record.kind == KIND_HEAD:
-            self.feed.on_head(record.t_ns, d["pan_rad"], d["tilt_rad"])
+            self.feed.on_head(record.t_ns, float(d["pan_rad"]), float(d["tilt_rad"]))
         elif record.kind == KIND_RANGE:
-            self.feed.on_range(record.t_ns, d["distance_mm"], d.get("quality", 0))
+            distance_mm, quality = float(d["distance_mm"]), int(d.get("quality", 0))
+            self.feed.on_range(record.t_ns, distance_mm, quality)
         elif record.kind == KIND_EVENT and "ref_mark_mm" in d:
-            self.feed.on_mark(record.t_ns, d["ref_mark_mm"])
+            self.feed.on_mark(record.t_ns, float(d["ref_mark_mm"]))
         elif record.kind in (KIND_FRAME, KIND_POSE):
             return self._pose(int(d.get("exposure_ns", record.t_ns)), record.kind)
         return None
@@ -108,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
         "poses": len(stats.results),
         "truncated_bytes": stats.truncated_bytes,
         "corrupt_files": stats.corrupt_files,
+        "malformed": registration.malformed,
     }
     print(" ".join(f"{k}={v}" for k, v in summary.items()), file=sys.stderr)
     return 0

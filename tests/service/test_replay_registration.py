@@ -95,3 +95,18 @@ def test_replay_applies_recorded_rangefinder_fixes(tmp_path: Path) -> None:
     for f in late:
         true_s = 100.0 + 0.5 * (f["t_ns"] // MS) * stretch
         assert f["s_mm"] == pytest.approx(true_s, abs=0.1)  # encoder-only would be 2.5-5 mm off
+
+
+def test_malformed_sample_records_are_counted_and_skipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    writer = RecordingWriter(tmp_path / "rec")
+    writer.open()
+    writer.write("encoder", 1 * MS, {"v_mm_s": 0.0})  # no s_mm
+    writer.write("range", 2 * MS, {"distance_mm": "far"})
+    writer.write("head", 3 * MS, {"pan_rad": 0.1, "tilt_rad": 0.2})
+    writer.close()
+    out = tmp_path / "poses.jsonl"
+    args = argparse.Namespace(files=[str(tmp_path / "rec")], config=None, out=str(out))
+    assert run(args) == 0
+    assert "malformed=2" in capsys.readouterr().err
