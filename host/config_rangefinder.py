@@ -6,12 +6,10 @@ the drift correction (host.fusion.range_fix); with none listed, readings are onl
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from host.config_fields import parse_matrix4, parse_vector3, spec
+from host.geometry.rangefinder import unit_normal
 
 IDENTITY_4 = (
     (1.0, 0.0, 0.0, 0.0),
@@ -64,8 +62,8 @@ def surface_problems(index: int, surface: SurfaceConfig) -> list[str]:
     problems = []
     if not surface.name:
         problems.append(f"{key}.name: required")
-    with np.errstate(over="ignore"):  # an overflow to inf is the answer, not a warning
-        norm = float(np.linalg.norm(surface.normal))  # as the geometry will normalise it
-    if not math.isfinite(norm) or norm < 1e-9:
-        problems.append(f"{key}.normal = {list(surface.normal)}: must be a non-zero vector")
+    try:
+        unit_normal(surface.normal)  # the geometry's own rule
+    except ValueError as exc:
+        problems.append(f"{key}.normal = {list(surface.normal)}: {exc}")
     return problems

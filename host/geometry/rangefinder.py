@@ -22,6 +22,17 @@ from host.geometry.transforms import ArrayLike, FloatArray
 PARALLEL_COS = 1e-9  # a beam this close to parallel to a surface never meets it
 
 
+def unit_normal(normal: ArrayLike) -> tuple[float, float, float]:
+    """A surface normal scaled to length 1; ValueError unless it has a usable direction."""
+    n = np.asarray(normal, dtype=np.float64)
+    with np.errstate(over="ignore"):  # a length that overflows is as unusable as zero
+        norm = float(np.linalg.norm(n))
+    if n.shape != (3,) or not math.isfinite(norm) or norm < 1e-9:
+        raise ValueError("must be a non-zero vector")
+    x, y, z = (float(v) for v in n / norm)
+    return x, y, z
+
+
 @dataclass(frozen=True)
 class Surface:
     """A flat surveyed patch: every point within radius_mm of point_w on the plane ⟂ normal_w."""
@@ -32,13 +43,13 @@ class Surface:
     radius_mm: float = math.inf
 
     def __post_init__(self) -> None:
-        n = np.asarray(self.normal_w, dtype=np.float64)
-        norm = float(np.linalg.norm(n))
-        if not math.isfinite(norm) or norm < 1e-9:
-            raise ValueError(f"surface {self.name!r}: the normal must be a non-zero vector")
+        try:
+            normal = unit_normal(self.normal_w)
+        except ValueError as exc:
+            raise ValueError(f"surface {self.name!r}: the normal {exc}") from None
         if not self.radius_mm > 0.0:
             raise ValueError(f"surface {self.name!r}: radius_mm must be > 0")
-        object.__setattr__(self, "normal_w", tuple(float(x) for x in n / norm))
+        object.__setattr__(self, "normal_w", normal)
 
 
 @dataclass(frozen=True)

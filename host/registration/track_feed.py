@@ -92,10 +92,8 @@ class PoseFeed:
         predicted = self.home_s_mm + self.chain.estimate(rel)[0]
         pan, tilt = float(angles.value[0]), float(angles.value[1])
         fix = self.ranger.fix(predicted, pan, tilt, distance_mm if quality > 0 else None)
-        if fix is not None and self.chain.reference(
-            rel, fix.s_mm - self.home_s_mm, fix.sigma_mm, advance=False
-        ):
-            self._correct_since(t_host_ns)
+        if fix is not None:
+            self._reference(t_host_ns, rel, fix.s_mm - self.home_s_mm, fix.sigma_mm)
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
         """A mark's captured encoder position: the nearest configured mark is the reference."""
@@ -108,8 +106,8 @@ class PoseFeed:
         self._adopt_controller_pitch()
         predicted = self.home_s_mm + self.chain.estimate(s_mm)[0]
         mark = self.chain.associate(s_mm, self._candidates_rel(predicted))
-        if mark is not None and self.chain.reference(s_mm, mark, advance=False):
-            self._correct_since(t_host_ns)
+        if mark is not None:
+            self._reference(t_host_ns, s_mm, mark)
 
     def stats(self) -> dict[str, Any]:
         """Plain numbers for link statistics: raw and corrected position, the filter's state."""
@@ -150,6 +148,17 @@ class PoseFeed:
         if homed and not self.homed:
             self._restart_filter()
         self.homed = homed
+
+    def _reference(
+        self, t_ns: int, enc_rel_mm: float, true_rel_mm: float, sigma_mm: float | None = None
+    ) -> None:
+        """Apply one absolute reference stamped t_ns; if taken, re-correct the buffer from then.
+
+        The encoder samples up to now have already been predicted through, hence no advance.
+        """
+        assert self.chain is not None
+        if self.chain.reference(enc_rel_mm, true_rel_mm, sigma_mm, advance=False):
+            self._correct_since(t_ns)
 
     def _correct_since(self, t_ns: int) -> None:
         """Re-correct the buffered samples from t_ns on with the filter as it now stands."""

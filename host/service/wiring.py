@@ -329,12 +329,10 @@ def build_ranger(config: Config, rig: Rig) -> RangeFixer | None:
     rf = config.rangefinder
     if not rf.surfaces:
         return None
-    try:
-        surfaces = tuple(
-            Surface(s.name, s.point_mm, s.normal, s.radius_mm or math.inf) for s in rf.surfaces
-        )
-    except ValueError as exc:
-        raise WiringError(f"[rangefinder]: {exc}") from exc
+    # Validated on load (config_rangefinder.surface_problems applies the geometry's rule).
+    surfaces = tuple(
+        Surface(s.name, s.point_mm, s.normal, s.radius_mm or math.inf) for s in rf.surfaces
+    )
     return RangeFixer(rig, RangeScene(surfaces), RangeFixConfig(noise_mm=rf.noise_mm))
 
 
