@@ -50,6 +50,11 @@ SETTLE_S = 0.2  # ring-down after the head reports it arrived
 HEAD_TIMEOUT_S = 10.0
 HEAD_TOLERANCE_RAD = 2e-3
 ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
+STILL_MM = 0.07  # about one encoder count (0.0635 mm): a standing trolley moves less than this
+STILL_WINDOW_S = 0.25  # ... for this long (the rotor's ring-down after a stop is ~0.2 s)
+STILL_POLL_S = 0.01
+STILL_TIMEOUT_S = 3.0
+UM_PER_MM = 1000.0
 
 
 @dataclass(frozen=True)
@@ -178,11 +183,41 @@ async def start_host(bench: Bench, link: str) -> None:
     await motion.done(timeout_s=60.0)
 
 
-def survey_home(bench: Bench, world: SimWorld) -> float:
-    """Track position of the controller's zero, as a survey at installation would give it."""
-    truth = world.with_truth(lambda sim: sim.truth())
-    position = bench.ctrl.snapshot().position_mm
-    return float(truth.s_mm - position)
+async def wait_still(bench: Bench) -> None:
+    """Wait until the encoder has stood still for STILL_WINDOW_S (or STILL_TIMEOUT_S passed).
+
+    A motion is done when its profile ends, but the stepper's rotor then rings about the field
+    (~14 Hz, ζ ≈ 0.2: ±1 mm of chain, gone after ~0.2 s): a survey taken during the ring-down
+    reads a trolley that is still moving.
+    """
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + STILL_TIMEOUT_S
+    seen: list[tuple[float, float]] = []
+    while loop.time() < deadline:
+        position = bench.ctrl.snapshot().position_mm
+        if position is not None:
+            seen.append((loop.time(), position))
+            recent = [p for t, p in seen if t >= seen[-1][0] - STILL_WINDOW_S]
+            if seen[-1][0] - seen[0][0] >= STILL_WINDOW_S and max(recent) - min(recent) < STILL_MM:
+                return
+        await asyncio.sleep(STILL_POLL_S)
+
+
+async def survey_home(bench: Bench, world: SimWorld) -> float:
+    """Track position of the controller's zero, as a survey at installation would give it.
+
+    The surveyor measures the standing trolley and reads the controller's position at that same
+    moment: here, the plant's true arc length and the firmware's encoder position, read together
+    under the simulator's lock once the trolley has stopped ringing. (Comparing the truth now
+    with the host's last, older position sample put the ring-down into the survey: a constant
+    offset of up to ~1 mm for the whole run, different from run to run.)
+    """
+    await wait_still(bench)
+
+    def simultaneous(sim: Simulation) -> float:
+        return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
+
+    return float(world.with_truth(simultaneous))
 
 
 async def static_experiment(
@@ -258,7 +293,7 @@ async def drift_experiment(
     await bench.move(switch_s + HOMING_RUN_UP_MM, plan.travel_speed_mm_s)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
-    bench.feed.set_home(survey_home(bench, world))
+    bench.feed.set_home(await survey_home(bench, world))
     await bench.point_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)
     start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
     marks_before = bench.feed.marks_seen

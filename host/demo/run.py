@@ -153,7 +153,7 @@ async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
         await start_host(bench, link)
-        feed.set_home(survey_home(bench, world))
+        feed.set_home(await survey_home(bench, world))
         results["static"] = await static_experiment(bench, plan, START_S_MM, progress)
         phase["static"] = False
         results["moving"] = await moving_experiment(bench, plan, START_S_MM, robot, progress)
