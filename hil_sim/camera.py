@@ -3,7 +3,11 @@
 Frames keep their ground truth (true T_w_c, true projected points). Model edges are subdivided
 before projection so distortion bends them as a real lens would. The chessboard is ray-cast: each
 pixel is undistorted once (cached per camera), intersected with the board plane and sampled from
-a supersampled board texture, so corners carry the true distortion for calibration tests.
+a supersampled board texture, so corners carry the true distortion for calibration tests. A
+ChArUco board (an OpenCV `CharucoBoard`, the same object the installer's detector uses) is
+ray-cast the same way, can sit in the hall behind the model, and can be smeared by the motion
+during the exposure (the mean of renders along the path, as a sensor integrates). `FrameClock`
+stamps frames as a camera does: at delivery, late by the readout and a jitter, unless triggered.
 Deterministic for a given seed. Imports only the shared math in host.geometry.
 """
 
@@ -17,7 +21,7 @@ import numpy.typing as npt
 
 from host.geometry.camera import CameraModel
 from host.geometry.model import Wireframe
-from host.geometry.transforms import FloatArray, invert_T, transform_points
+from host.geometry.transforms import FloatArray, interpolate_T, invert_T, transform_points
 
 UInt8Image = npt.NDArray[np.uint8]
 
@@ -28,6 +32,11 @@ NOISE_SIGMA_DN = 1.5  # Gaussian pixel noise, grey levels
 TEXTURE_PX_PER_SQUARE = 64  # board texture resolution
 BOARD_MARGIN_SQUARES = 1.0  # white border around the squares, in squares
 TEXTURED_POINT_RADIUS_PX = 3
+BLUR_SAMPLES = 9  # sub-exposure renders averaged into one blurred frame
+# A camera without a trigger stamps a frame when it arrives: readout plus transfer late
+# (about 20 ms for 1280x1024 at 30 fps), with a millisecond of USB/driver jitter.
+DELIVERY_S = 0.020
+DELIVERY_JITTER_S = 0.001
 
 
 @dataclass(frozen=True)
@@ -50,6 +59,45 @@ class ChessboardFrame:
     visible: bool  # every inner corner inside the image and in front of the camera
 
 
+@dataclass(frozen=True)
+class BoardFrame:
+    """A rendered ChArUco view and its ground truth."""
+
+    image: UInt8Image
+    T_c_b: FloatArray  # at the middle of the exposure
+    corners_uv: FloatArray  # (N,2) true pixels of every ChArUco corner, by corner id
+    in_view: npt.NDArray[np.bool_]  # (N,) corner in front of the camera and inside the image
+
+
+@dataclass(frozen=True)
+class PlacedBoard:
+    """A ChArUco board fixed in the hall: the board and its pose T_w_b."""
+
+    board: cv2.aruco.CharucoBoard
+    T_w_b: FloatArray
+
+
+@dataclass
+class FrameClock:
+    """Frame stamps as a camera gives them: exposure time, or delivery time plus jitter."""
+
+    triggered: bool = False
+    delivery_s: float = DELIVERY_S
+    jitter_s: float = DELIVERY_JITTER_S
+    seed: int = 0
+    _rng: np.random.Generator = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._rng = np.random.default_rng(self.seed)
+
+    def stamp_ns(self, exposure_ns: int) -> int:
+        """The stamp the host sees for a frame exposed at `exposure_ns`."""
+        if self.triggered:  # the trigger line's edge is the exposure, timed by the host
+            return exposure_ns
+        late_s = self.delivery_s + abs(float(self._rng.normal(0.0, self.jitter_s)))
+        return exposure_ns + round(late_s * 1e9)
+
+
 @dataclass
 class SyntheticCamera:
     """Renders scenes and chessboards through a true camera model, seeded noise."""
@@ -69,11 +117,16 @@ class SyntheticCamera:
         model: Wireframe,
         T_w_p: FloatArray,
         textured_points_p: FloatArray | None = None,
+        board: PlacedBoard | None = None,
     ) -> SceneFrame:
-        """Grey background, model edges (in workpiece frame p) and textured points."""
+        """Grey background (and a board in the hall), model edges (frame p), textured points."""
         T_c_p = invert_T(T_w_c) @ T_w_p
-        img = np.empty((self.camera.height, self.camera.width, 3), dtype=np.uint8)
-        img[:] = BACKGROUND_BGR
+        if board is None:
+            img = np.empty((self.camera.height, self.camera.width, 3), dtype=np.uint8)
+            img[:] = BACKGROUND_BGR
+        else:
+            grey = self._cast_charuco(invert_T(T_w_c) @ board.T_w_b, board.board)
+            img = np.asarray(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
         self._draw_edges(img, T_c_p, model)
         pts = np.zeros((0, 3)) if textured_points_p is None else textured_points_p
         pts_uv, _ = self.camera.project(transform_points(T_c_p, pts))
@@ -97,6 +150,38 @@ class SyntheticCamera:
         inside &= (uv[:, 1] > 0) & (uv[:, 1] < self.camera.height - 1)
         visible = bool(np.all(valid & inside))
         return ChessboardFrame(self._noisy(img3), np.array(T_c_b, dtype=np.float64), uv, visible)
+
+    def render_board(
+        self,
+        T_c_b: FloatArray,
+        board: cv2.aruco.CharucoBoard,
+        T_c_b_end: FloatArray | None = None,
+    ) -> BoardFrame:
+        """A ChArUco board at T_c_b; with T_c_b_end, blurred by the motion between the two."""
+        if T_c_b_end is None:
+            grey = self._cast_charuco(T_c_b, board)
+            mid = np.array(T_c_b, dtype=np.float64)
+        else:
+            poses = interpolate_T(T_c_b, T_c_b_end, np.linspace(0.0, 1.0, BLUR_SAMPLES))
+            acc = sum(self._cast_charuco(T, board).astype(np.float32) for T in poses)
+            grey = np.clip(np.rint(np.asarray(acc) / BLUR_SAMPLES), 0, 255).astype(np.uint8)
+            mid = np.asarray(interpolate_T(T_c_b, T_c_b_end, 0.5), dtype=np.float64)
+        corners = np.asarray(board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+        uv, valid = self.camera.project(transform_points(mid, corners))
+        inside = valid & (uv[:, 0] > 0) & (uv[:, 0] < self.camera.width - 1)
+        inside &= (uv[:, 1] > 0) & (uv[:, 1] < self.camera.height - 1)
+        img3 = np.asarray(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+        return BoardFrame(self._noisy(img3), mid, uv, inside)
+
+    def _cast_charuco(self, T_c_b: FloatArray, board: cv2.aruco.CharucoBoard) -> UInt8Image:
+        """Grey image of the board seen from T_c_b (no noise), background elsewhere."""
+        square_mm = float(board.getSquareLength())
+        tex = _charuco_texture(board)
+        H = self._board_map(
+            T_c_b, square_mm, offset_px=BOARD_MARGIN_SQUARES * TEXTURE_PX_PER_SQUARE
+        )
+        out = cv2.remap(tex, H[0], H[1], cv2.INTER_LINEAR, borderValue=BACKGROUND_BGR[0])
+        return np.asarray(out, dtype=np.uint8)
 
     def _draw_edges(self, img: UInt8Image, T_c_p: FloatArray, model: Wireframe) -> None:
         """Draw subdivided edges, skipping pieces with an end behind the camera."""
@@ -136,8 +221,14 @@ class SyntheticCamera:
             self._rays = self.camera.undistort_normalized(np.stack([u, v], axis=-1).astype(float))
         return self._rays
 
-    def _board_map(self, T_c_b: FloatArray, square_mm: float) -> npt.NDArray[np.float32]:
-        """Texture coordinates (2, H, W) seen by each pixel through the board-plane homography."""
+    def _board_map(
+        self, T_c_b: FloatArray, square_mm: float, offset_px: float | None = None
+    ) -> npt.NDArray[np.float32]:
+        """Texture coordinates (2, H, W) of each pixel through the board-plane homography.
+
+        `offset_px` is where the board origin sits in the texture (pixel edges); the default is
+        the chessboard's, whose origin is the first inner corner.
+        """
         n = self._pixel_rays()
         # Pixel ray (x, y, 1) meets the plane z_b = 0: H maps board (X, Y, 1) to the ray.
         Hm = np.column_stack([T_c_b[:3, 0], T_c_b[:3, 1], T_c_b[:3, 3]])
@@ -146,7 +237,10 @@ class SyntheticCamera:
         X = (Hi[0, 0] * n[..., 0] + Hi[0, 1] * n[..., 1] + Hi[0, 2]) / w
         Y = (Hi[1, 0] * n[..., 0] + Hi[1, 1] * n[..., 1] + Hi[1, 2]) / w
         scale = TEXTURE_PX_PER_SQUARE / square_mm
-        off = (BOARD_MARGIN_SQUARES + 1.0) * TEXTURE_PX_PER_SQUARE - 0.5
+        edge = (
+            (BOARD_MARGIN_SQUARES + 1.0) * TEXTURE_PX_PER_SQUARE if offset_px is None else offset_px
+        )
+        off = edge - 0.5  # texture pixel centres sit at integers
         mx, my = X * scale + off, Y * scale + off
         behind = w <= 0.0  # the ray meets the plane behind the camera
         mx[behind] = my[behind] = -1e6
@@ -168,3 +262,20 @@ def _board_texture(cols: int, rows: int) -> UInt8Image:
     squares = np.where((ix + iy) % 2 == 0, 20, 235).astype(np.uint8)
     tex = np.kron(squares, np.ones((s, s), dtype=np.uint8))
     return np.pad(tex, m, constant_values=235)
+
+
+# id → (board, texture): holding the board keeps its id from being reused
+_CHARUCO_TEXTURES: dict[int, tuple[cv2.aruco.CharucoBoard, UInt8Image]] = {}
+
+
+def _charuco_texture(board: cv2.aruco.CharucoBoard) -> UInt8Image:
+    """The board's printed image, TEXTURE_PX_PER_SQUARE per square and a white margin (cached)."""
+    key = id(board)
+    if key not in _CHARUCO_TEXTURES:
+        cols, rows = board.getChessboardSize()
+        m, s = int(BOARD_MARGIN_SQUARES * TEXTURE_PX_PER_SQUARE), TEXTURE_PX_PER_SQUARE
+        img = board.generateImage((cols * s + 2 * m, rows * s + 2 * m), marginSize=m)
+        # printed black and white are not 0 and 255: keep the sensor's headroom for noise
+        tex = (20 + np.asarray(img, np.float32) * (215 / 255)).astype(np.uint8)
+        _CHARUCO_TEXTURES[key] = (board, tex)
+    return _CHARUCO_TEXTURES[key][1]
