@@ -10,6 +10,7 @@ from typing import Any
 
 from host.control import cli_commands
 from host.demo import run as demo_run
+from host.rig import cli as rig_cli
 
 
 def _version() -> str:
@@ -27,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     demo_run.add_parser(sub)
     cli_commands.add_parsers(sub)
+    rig_cli.add_parser(sub)
     _add_sim_parser(sub)
     return parser
 

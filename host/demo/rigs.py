@@ -10,6 +10,7 @@ issue 11, when the host was handed the simulator's own calibration).
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,10 +23,11 @@ from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import Wireframe, load_model, manipulator_wireframe
 from host.geometry.rangefinder import hall_walls
-from host.geometry.transforms import FloatArray
+from host.geometry.transforms import FloatArray, make_T
 from host.rig import (
     HallSpec,
     Marks,
+    Pose6,
     RigSpec,
     SurfaceSpec,
     build_camera,
@@ -42,6 +44,9 @@ FIRST_MARK_MM = 400.0  # just past the home switch, so the chain scale is learnt
 LAST_MARK_BEFORE_END_MM = 80.0
 HALL_X_MM = (-6000.0, 6000.0)  # a 12 m × 9 m hall around the runway (centred on the origin)
 HALL_Y_MM = (-4500.0, 4500.0)
+HOME_SWITCH_MM = 150.0  # where the runway's home switch is mounted
+WORKPIECE_W = (-300.0, -300.0, 0.0)  # the robot's base on the floor, inside the runway
+LOOK_AHEAD_TILT_RAD = math.pi / 2  # the drift loop looks along the track at the end walls
 
 
 def paper_demo_rig() -> RigSpec:
@@ -52,11 +57,19 @@ def paper_demo_rig() -> RigSpec:
         SurfaceSpec(s.name, s.point_w, s.normal_w, 0.0, SURVEY_SIGMA_MM)
         for s in hall_walls(x_mm=HALL_X_MM, y_mm=HALL_Y_MM)
     )
+    home = dataclasses.replace(base.track.home, value=HOME_SWITCH_MM)
+    frame = Pose6(
+        make_T(np.eye(3), WORKPIECE_W),
+        base.workpiece.frame.sigma_rad,
+        base.workpiece.frame.sigma_mm,
+    )
     return dataclasses.replace(
         base,
         name="paper runway in a surveyed hall",
-        track=dataclasses.replace(base.track, marks=Marks(marks)),
+        track=dataclasses.replace(base.track, marks=Marks(marks), home=home),
         hall=HallSpec(surfaces),
+        head=dataclasses.replace(base.head, tilt_max_rad=LOOK_AHEAD_TILT_RAD),
+        workpiece=dataclasses.replace(base.workpiece, frame=frame),
     )
 
 
