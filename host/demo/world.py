@@ -95,6 +95,16 @@ class SimWorld:
             self._emulator = None
         self.runner.stop()
 
+    @property
+    def emulator(self) -> object:
+        """The running link emulator (PtyUart, XBeeModule or VirtualCanNode), None if stopped."""
+        return self._emulator
+
+    @property
+    def can_channel(self) -> str:
+        """The python-can virtual channel of the CAN link."""
+        return self._can_channel
+
     def host_transport(self) -> Transport:
         """The daemon's transport for this link, configured as on a real rig."""
         emu = self._emulator

@@ -569,13 +569,20 @@ def open_camera(config: Config) -> FrameSource | None:
 
 
 def frame_loop_factory(
-    config: Config, controller: ControllerLike, pose_sink: PoseSink, record_tap: RecordTap
+    config: Config,
+    controller: ControllerLike,
+    pose_sink: PoseSink,
+    record_tap: RecordTap,
+    camera_source: FrameSource | None = None,
 ) -> FrameLoopLike:
-    """The pose loop on the controller's samples: per camera frame, or at a fixed rate."""
+    """The pose loop on the controller's samples: per camera frame, or at a fixed rate.
+
+    `camera_source` replaces the configured camera (the demo hands the simulator's camera in).
+    """
     if not isinstance(controller, LinkController):
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
-    camera = open_camera(config)
+    camera = camera_source or open_camera(config)
     latency_ms = exposure_latency_ms(config) if camera is not None else 0.0
     poses, feed = build_pose_source(
         config, controller.stream_rates_hz, latency_ms, controller.chain_pitch_mm
