@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import sys
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,6 +20,7 @@ import numpy as np
 
 from hil_sim.camera import FrameClock
 from hil_sim.true_rig import parameter_errors
+from host.demo.daemon_phase import RunningDaemon, running_daemon
 from host.demo.experiments import (
     Bench,
     MovingRobot,
@@ -38,7 +41,7 @@ from host.frames.loop import FrameLoop
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
-from host.rig import RigError, build_scene, save_rig
+from host.rig import RigError, build_scene, load_rig, save_rig
 from host.rig.schema import SURVEY_SIGMA_MM
 
 BAR_WIDTH = 30
@@ -99,6 +102,10 @@ class LoopLag:
             self.max_ms = max(self.max_ms, (loop.time() - t - self.period_s) * 1e3)
 
 
+Commissioner = Callable[[RunningDaemon, DemoRigs, SimWorld], Awaitable[dict[str, Any]]]
+"""Commissioning through the running daemon: writes the host's rig file, returns its report."""
+
+
 async def run_demo(
     link: str,
     quick: bool,
@@ -106,24 +113,50 @@ async def run_demo(
     seed: int = 1,
     rig_path: Path | None = None,
     tolerances: bool = False,
+    commission: Commissioner | None = None,
+    plan: Plan | None = None,
 ) -> dict[str, Any]:
     """Run everything; return the results (also written to out_dir).
 
     The host starts from the rig description (`rig_path`, default the paper's rig in a surveyed
     hall); the simulator runs the true rig: the description itself, or with `tolerances` the
-    description off by seeded installation tolerances. Experiments use the host's rig only.
+    description off by seeded installation tolerances. With `commission`, the daemon runs on the
+    simulated rig first and the commissioning writes OUT/rig.toml through its control socket;
+    the experiments then use that file's (calibrated) rig only.
     """
     rigs = DemoRigs.make(rig_path, seed, tolerances)
     out_dir.mkdir(parents=True, exist_ok=True)
     host_rig_file = out_dir / "rig.toml"  # what the host knows; commissioning writes here
     save_rig(rigs.host, host_rig_file, "the demo's host rig (nominal)")
-    start_s = rigs.start_s_mm()
-    plan = (Plan.quick() if quick else Plan()).fitted(
-        start_s, rigs.host.track.home.value, rigs.travel_mm()
-    )
-    rig, camera, model = rigs.host_kinematics(), rigs.host_camera(), model_of(rigs.host)
     sc = rigs.scenario(seed)
     world = SimWorld(sc, link)
+    results: dict[str, Any] = {"link": link, "quick": quick, "seed": seed, "rig": rigs.host.name}
+    results["mode"] = {"tolerances": tolerances, "commissioned": False}
+    await world.start()
+    try:
+        if commission is not None:
+            async with running_daemon(world, host_rig_file, out_dir / "daemon") as daemon:
+                results["commissioning"] = await commission(daemon, rigs, world)
+            rigs = dataclasses.replace(rigs, host=load_rig(host_rig_file))
+            results["mode"]["commissioned"] = True
+        base = plan or (Plan.quick() if quick else Plan())
+        fitted = base.fitted(rigs.start_s_mm(), rigs.host.track.home.value, rigs.travel_mm())
+        snapshots = await _experiments(rigs, world, fitted, link, seed, results)
+    finally:
+        await world.stop()
+    camera = rigs.host_camera()
+    results["calibration"] = parameter_errors(rigs.host, rigs.truth)
+    results["propagation"] = propagation_results(camera, samples=20_000 if quick else 100_000)
+    results["report"] = str(write_report(out_dir, results, snapshots, sc))
+    return results
+
+
+async def _experiments(
+    rigs: DemoRigs, world: SimWorld, plan: Plan, link: str, seed: int, results: dict[str, Any]
+) -> list[tuple[str, Any]]:
+    """Static, moving and drift experiments on the host's rig; results in place; snapshots."""
+    start_s = rigs.start_s_mm()
+    rig, camera, model = rigs.host_kinematics(), rigs.host_camera(), model_of(rigs.host)
     host_pose, true_pose = rigs.host_workpiece(), rigs.true_workpiece()
     robot = MovingRobot(
         host_pose, rig.track.pose(start_s)[:3, 0], plan.moving_speed_mm_s, plan.moving_length_mm
@@ -137,12 +170,11 @@ async def run_demo(
         return true_pose if phase["static"] else robot.pose_at_ns(t_ns, true_pose)
 
     progress = Progress({"connect": 1, "static": 5, "moving": 2, "drift": 5})
-    await world.start()
     ctrl = Controller(world.host_transport())
     scene = build_scene(rigs.host)
     rf = rigs.host.rangefinder
     ranger = None if scene is None else RangeFixer(rig, scene, RangeFixConfig(noise_mm=rf.noise_mm))
-    feed = TrackFeed(rigs.host.track.marks.s_mm, sc.chain.pitch_mm, ranger)
+    feed = TrackFeed(rigs.host.track.marks.s_mm, world.sim.scenario.chain.pitch_mm, ranger)
     ctrl.add_sink(feed)
     bench = Bench(
         ctrl,
@@ -154,7 +186,7 @@ async def run_demo(
         Truth(rigs.true_kinematics(), rigs.true_camera()),
         home_switch_s_mm=rigs.host.track.home.value,
         latency_ns=round(rigs.host.camera.latency.value * 1e6),
-        home_survey_sigma_mm=SURVEY_SIGMA_MM if tolerances else 0.0,
+        home_survey_sigma_mm=SURVEY_SIGMA_MM if rigs.tolerances else 0.0,
         survey_seed=seed,
     )
     clock = _frame_clock(rigs, seed)
@@ -166,8 +198,6 @@ async def run_demo(
     frames = asyncio.create_task(loop.run())
     lag = LoopLag()
     lag_task = asyncio.create_task(lag.run())
-    results: dict[str, Any] = {"link": link, "quick": quick, "seed": seed, "rig": rigs.host.name}
-    results["mode"] = {"tolerances": tolerances, "commissioned": False}
     try:
         progress("connect: handshake and homing", 0.0)
         ident = await ctrl.connect()
@@ -195,12 +225,8 @@ async def run_demo(
         with contextlib.suppress(Exception):
             await asyncio.wait_for(frames, 10.0)
         await ctrl.close()
-        await world.stop()
         progress.finish()
-    results["calibration"] = parameter_errors(rigs.host, rigs.truth)
-    results["propagation"] = propagation_results(camera, samples=20_000 if quick else 100_000)
-    results["report"] = str(write_report(out_dir, results, bench.snapshots, sc))
-    return results
+    return bench.snapshots
 
 
 def _frame_clock(rigs: DemoRigs, seed: int) -> FrameClock:
