@@ -29,6 +29,7 @@ from host.config_fields import (
     parse_vector3,
     spec,
 )
+from host.config_opentrackio import OpenTrackIOConfig, opentrackio_problems
 from host.config_rangefinder import SURFACES_EXAMPLE, RangefinderConfig, surface_problems
 
 LINK_KINDS = ("serial", "xbee", "can")
@@ -268,6 +269,7 @@ class OutputsConfig:
     """Every output of the daemon."""
 
     freed: FreedConfig = field(default_factory=FreedConfig)
+    opentrackio: OpenTrackIOConfig = field(default_factory=OpenTrackIOConfig)
 
 
 @dataclass(frozen=True)
@@ -468,6 +470,7 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
     errors += _track_position_problems(track)
     for i, surface in enumerate(config.rangefinder.surfaces):
         errors += surface_problems(i, surface)
+    errors += opentrackio_problems(config.outputs.opentrackio)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
     return errors

@@ -23,7 +23,7 @@ from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext
 from host.control.server import ControlServer, ControlServerError
-from host.outputs.freed import FreedSender
+from host.outputs.tracking import TrackingOutputs
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
@@ -77,7 +77,7 @@ class Daemon:
         self.output_errors = 0
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
-        self.freed: FreedSender | None = None
+        self.outputs = TrackingOutputs()
         self.controller = controller_factory(config, self.record)
         self.frame_loop = (
             frame_loop_factory(config, self.controller, self.on_pose, self.record)
@@ -118,8 +118,7 @@ class Daemon:
         data = sample.to_dict()
         try:
             self.server.publish("pose", data)
-            if self.freed is not None:
-                self.freed.send(sample.T_w_c)
+            self.outputs.send(sample)
             self.record(KIND_POSE, sample.t_ns, data)
         except Exception as exc:  # an output must never break the frame loop
             self.output_errors += 1
@@ -145,7 +144,7 @@ class Daemon:
             "fps": fps,
             "clients": self.server.client_count,
             "link_error": "" if self.controller.connected else self.link_error,
-            "freed": self.freed.stats() if self.freed else None,
+            **self.outputs.stats(),
             "recording": str(self.recorder.current) if self.recorder else None,
             "output_errors": self.output_errors,
         }
@@ -179,7 +178,7 @@ class Daemon:
             set_level(new.log.level)
             applied.append("log")
         if new.outputs != self.config.outputs:
-            await self._restart_freed(new)
+            await self.outputs.start(new)
             applied.append("outputs")
         if new.recording != self.config.recording:
             self._restart_recorder(new)
@@ -192,7 +191,7 @@ class Daemon:
     async def _start(self) -> None:
         """Open the socket and the outputs, then start the background tasks."""
         await self.server.start()
-        await self._restart_freed(self.config)
+        await self.outputs.start(self.config)
         self._restart_recorder(self.config)
         for job in (self._link_keeper(), self._watchdog(), self._status_reporter()):
             self._spawn(job)
@@ -212,8 +211,7 @@ class Daemon:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self._halt_and_close()
         await self.server.close()
-        if self.freed is not None:
-            self.freed.close()
+        self.outputs.close()
         if self.recorder is not None:
             self.recorder.close()
         self.notifier.close()
@@ -294,16 +292,6 @@ class Daemon:
                 self.server.publish("state", snapshot)
                 last = snapshot
             await asyncio.sleep(STATE_POLL_S)
-
-    async def _restart_freed(self, config: Config) -> None:
-        """(Re)open the FreeD sender as configured."""
-        if self.freed is not None:
-            self.freed.close()
-            self.freed = None
-        if config.outputs.freed.enabled:
-            sender = FreedSender(config.outputs.freed)
-            await sender.start()
-            self.freed = sender
 
     def _restart_recorder(self, config: Config) -> None:
         """(Re)open the recording as configured; a failure is logged, not fatal."""
