@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from host.config_bus import BusConfig, bus_problems
 from host.config_fields import (
     ConfigError,
     parse_destination,
@@ -333,6 +334,7 @@ class Config:
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
     log: LogConfig = field(default_factory=LogConfig)
     systemd: SystemdConfig = field(default_factory=SystemdConfig)
 
@@ -471,6 +473,7 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
     for i, surface in enumerate(config.rangefinder.surfaces):
         errors += surface_problems(i, surface)
     errors += opentrackio_problems(config.outputs.opentrackio)
+    errors += bus_problems(config.bus)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
     return errors

@@ -25,6 +25,7 @@ from host.control.api import Matrix4, PoseSample
 from host.geometry.camera import CameraModel
 from host.outputs.opentrackio_packet import Encoding, segment_payload
 from host.outputs.udp import UdpFanout
+from host.outputs.wallclock import monotonic_to_unix_ns
 
 log = logging.getLogger(__name__)
 
@@ -104,11 +105,8 @@ class TaiClock:
 
     def to_tai_ns(self, t_mono_ns: int) -> int:
         """TAI time of a host monotonic instant."""
-        before = time.monotonic_ns()
-        realtime = time.time_ns()
-        after = time.monotonic_ns()
-        offset = self.kernel_offset_s() or self.utc_tai_offset_s
-        return t_mono_ns - (before + after) // 2 + realtime + offset * NS_PER_S
+        offset_s = self.kernel_offset_s() or self.utc_tai_offset_s
+        return monotonic_to_unix_ns(t_mono_ns) + offset_s * NS_PER_S
 
 
 def _ptp_time(tai_ns: int) -> dict[str, int]:
