@@ -170,9 +170,9 @@ def _subscribers_process(
     assert pipe.recv() == "report"
     pipe.send({"latencies": list(latencies), "cpu_s": time.process_time() - cpu0})
     for sub in subs:
-        sub.undeclare()  # type: ignore[no-untyped-call]
+        sub.undeclare()
     for session in sessions:
-        session.close()  # type: ignore[no-untyped-call]
+        session.close()
     asyncio.run(_control_subscribers(args, sock, pipe))
 
 

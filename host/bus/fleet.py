@@ -156,7 +156,7 @@ def run_fleet(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:
         return 0
     finally:
         fleet.close()
-        session.close()  # type: ignore[no-untyped-call]
+        session.close()
 
 
 def _settings(args: argparse.Namespace) -> tuple[str, list[str], list[str], bool] | None:

@@ -79,7 +79,7 @@ async def rig() -> AsyncIterator[tuple[Rig, zenoh.Session, int]]:
         with contextlib.suppress(asyncio.CancelledError):
             await task
         await r.bus.close()
-        peer.close()  # type: ignore[no-untyped-call]
+        peer.close()
 
 
 def collect(session: zenoh.Session, selector: str) -> tuple[list[dict[str, Any]], Any]:
