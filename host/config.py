@@ -37,6 +37,7 @@ LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 SEGMENT_KINDS = ("straight", "arc")
 TRACK_PRESETS = ("runway", "custom")
+MIN_TOKEN_CHARS = 16  # control tokens: long enough that guessing through hello is hopeless
 XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
 
 # M_cr of the paper's eq. 14: the camera in the head frame, millimetres.
@@ -288,6 +289,26 @@ class ControlConfig:
     queue_max: int = spec(
         256, lo=1, hi=100_000, doc="events buffered per subscriber before the oldest are dropped"
     )
+    max_unix_connections: int = spec(16, lo=1, hi=1000, doc="clients at once on the Unix socket")
+    max_tcp_connections: int = spec(32, lo=1, hi=1000, doc="clients at once on TCP")
+    hello_timeout_s: float = spec(
+        10.0, lo=0.1, hi=3600.0, doc="a TCP client without a successful hello is cut off after"
+    )
+    idle_timeout_s: float = spec(
+        600.0,
+        lo=1.0,
+        hi=86400.0,
+        doc="a client sending nothing and subscribed to nothing is cut off after",
+    )
+    client_buffer_kb: int = spec(
+        2048,
+        lo=256,
+        hi=1_048_576,
+        doc="replies queued for a client that does not read before it is cut off",
+    )
+    stall_timeout_s: float = spec(
+        30.0, lo=0.1, hi=3600.0, doc="a client whose replies do not drain is cut off after"
+    )
 
 
 @dataclass(frozen=True)
@@ -476,6 +497,10 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
     errors += bus_problems(config.bus)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
+    for key in ("operator_token", "viewer_token"):
+        if 0 < (n := len(getattr(config.control, key))) < MIN_TOKEN_CHARS:
+            hint = "python3 -c 'import secrets; print(secrets.token_urlsafe(24))' makes one"
+            errors.append(f"control.{key}: {n} characters, need {MIN_TOKEN_CHARS} or more ({hint})")
     return errors
 
 

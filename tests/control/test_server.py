@@ -23,6 +23,8 @@ from host.control.server import ControlServer, ControlServerError
 from host.control.wire import MAX_MESSAGE_BYTES
 from protocol import ParamId
 
+OP_TOKEN = "operator-secret-0123456789"
+VIEW_TOKEN = "viewer-secret-0123456789"
 IDENTITY = ((1.0, 0, 0, 0), (0, 1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0))
 
 
@@ -39,8 +41,8 @@ async def server(tmp_path: Path, fake: FakeController) -> AsyncIterator[ControlS
         socket_path=str(tmp_path / "ctl.sock"),
         tcp_enabled=True,
         tcp_port=0,
-        operator_token="op-secret",
-        viewer_token="view-secret",
+        operator_token=OP_TOKEN,
+        viewer_token=VIEW_TOKEN,
         queue_max=8,
     )
     pose = PoseSample(123, IDENTITY, "READY", 5.0)
@@ -203,7 +205,7 @@ async def test_tcp_requires_hello_and_viewer_cannot_move(
         assert exc.value.code == "unauthorized"
         with pytest.raises(ControlRequestError):
             await c.request("hello", token="wrong")
-        assert (await c.request("hello", token="view-secret"))["role"] == "viewer"
+        assert (await c.request("hello", token=VIEW_TOKEN))["role"] == "viewer"
         assert "controller" in await c.request("status")
         before = len(fake.calls)
         with pytest.raises(ControlRequestError) as exc:
@@ -215,7 +217,7 @@ async def test_tcp_requires_hello_and_viewer_cannot_move(
 async def test_tcp_operator_may_move(server: ControlServer, fake: FakeController) -> None:
     assert server.tcp_port
     async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
-        assert (await c.request("hello", token="op-secret"))["role"] == "operator"
+        assert (await c.request("hello", token=OP_TOKEN))["role"] == "operator"
         await c.request("estop")
     assert fake.state.name == "ESTOP"
 

@@ -1,0 +1,188 @@
+"""Nothing a client does exhausts the daemon: floods of requests and of idle connections.
+
+The server runs in a process of its own (tests/control/server_process.py) so that its resident
+memory and its file descriptors are measured alone. Every flood is bounded in bytes and time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import select
+import socket
+import struct
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+
+from host.control.wire import pack
+from tests.control.server_process import fd_count, rss_kb
+
+ROOT = Path(__file__).resolve().parents[2]
+TOKEN = "operator-secret-0123456789"
+MAX_TCP = 20
+MAX_UNIX = 6
+FLOOD_BYTES = 24 * 1024 * 1024  # what a non-reading client may try to push in
+FLOOD_S = 8.0
+RSS_GROWTH_MAX_KB = 25 * 1024  # a few client buffers; the unbounded server grew by hundreds of MB
+
+
+@dataclass
+class ServerProcess:
+    """The running server: its pid, socket path, TCP port and stderr file."""
+
+    proc: subprocess.Popen[bytes]
+    pid: int
+    path: str
+    tcp_port: int
+    stderr: Path
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
+    tmp = tmp_path_factory.mktemp("limits")
+    fields = {
+        "socket_path": str(tmp / "ctl.sock"),
+        "tcp_enabled": True,
+        "tcp_port": 0,
+        "operator_token": TOKEN,
+        "max_tcp_connections": MAX_TCP,
+        "max_unix_connections": MAX_UNIX,
+        "hello_timeout_s": 1.5,
+        "idle_timeout_s": 60.0,
+        "stall_timeout_s": 1.5,
+        "client_buffer_kb": 1024,
+    }
+    stderr = tmp / "server.log"
+    with stderr.open("wb") as err:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "tests.control.server_process", json.dumps(fields)],
+            cwd=ROOT,
+            env={**os.environ, "PYTHONPATH": str(ROOT)},
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=err,
+        )
+    assert proc.stdout is not None and proc.stdin is not None
+    line = proc.stdout.readline()
+    assert line, f"server did not start: {stderr.read_text()}"
+    info = json.loads(line)
+    yield ServerProcess(proc, info["pid"], fields["socket_path"], info["tcp_port"], stderr)
+    proc.stdin.close()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def _read_message(sock: socket.socket) -> dict[str, Any]:
+    """One framed reply from a blocking socket."""
+    (n,) = struct.unpack(">I", sock.recv(4, socket.MSG_WAITALL))
+    reply: dict[str, Any] = msgpack.unpackb(sock.recv(n, socket.MSG_WAITALL))
+    return reply
+
+
+def _unix_status(path: str, timeout_s: float = 3.0) -> dict[str, Any]:
+    """The operator's `status` over the Unix socket, blocking, within `timeout_s`."""
+    with socket.socket(socket.AF_UNIX) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(path)
+        sock.sendall(pack({"id": 1, "op": "status", "args": {}}))
+        return _read_message(sock)
+
+
+def _connect(server: ServerProcess, listener: str) -> socket.socket:
+    """A raw client socket on one listener."""
+    if listener == "unix":
+        sock = socket.socket(socket.AF_UNIX)
+        sock.connect(server.path)
+    else:
+        sock = socket.create_connection(("127.0.0.1", server.tcp_port), timeout=5)
+    return sock
+
+
+def _flood(sock: socket.socket, pid: int) -> tuple[int, int, bool]:
+    """Send `status` requests and never read: (bytes sent, peak server RSS kB, cut off?)."""
+    chunk = b"".join(pack({"id": i, "op": "status"}) for i in range(2000))
+    sock.setblocking(False)
+    sent, peak, offset = 0, rss_kb(pid), 0
+    deadline = time.monotonic() + FLOOD_S
+    while sent < FLOOD_BYTES and time.monotonic() < deadline:
+        try:
+            n = sock.send(chunk[offset:])
+        except BlockingIOError:
+            select.select([], [sock], [], 0.05)
+            n = 0
+        except (BrokenPipeError, ConnectionResetError):
+            return sent, max(peak, rss_kb(pid)), True
+        sent += n
+        offset = (offset + n) % len(chunk)
+        peak = max(peak, rss_kb(pid))
+    return sent, peak, False
+
+
+@pytest.mark.parametrize("listener", ["unix", "tcp"])
+def test_a_client_that_never_reads_cannot_grow_the_daemon(
+    server: ServerProcess, listener: str
+) -> None:
+    before_kb = rss_kb(server.pid)
+    with _connect(server, listener) as sock:  # on TCP nothing but requests before any hello
+        sent, peak_kb, cut = _flood(sock, server.pid)
+    growth_kb = peak_kb - before_kb
+    assert growth_kb < RSS_GROWTH_MAX_KB, f"{growth_kb} kB more after {sent} bytes of requests"
+    assert cut, f"still connected after {sent} bytes sent and {FLOOD_S} s of unread replies"
+    assert _unix_status(server.path)["ok"] is True  # the daemon serves the next client
+
+
+def test_idle_connection_flood_leaves_the_operator_a_way_in(server: ServerProcess) -> None:
+    base_fds = fd_count(server.pid)
+    log_before = server.stderr.stat().st_size
+    idle: list[socket.socket] = []
+    try:
+        for _ in range(300):
+            with contextlib.suppress(OSError):
+                idle.append(socket.create_connection(("127.0.0.1", server.tcp_port), timeout=2))
+        time.sleep(0.3)  # let the server accept (and refuse) them all
+        assert fd_count(server.pid) <= base_fds + MAX_TCP + 2
+        status = _unix_status(server.path)
+        assert status["ok"] is True and status["result"]["link_up"] is False
+        refused = _first_message(idle[-1])
+        assert refused["error"]["code"] == "too_many_clients"
+        assert "control.max_tcp_connections" in refused["error"]["message"]
+        timed_out = _first_message(idle[0], wait_s=5)  # admitted, never said hello
+        assert timed_out["error"]["code"] == "timeout"
+        assert "control.hello_timeout_s" in timed_out["error"]["message"]
+        time.sleep(0.5)
+        assert fd_count(server.pid) <= base_fds + 2  # every idle one was cut off
+    finally:
+        for sock in idle:
+            sock.close()
+    log = server.stderr.read_bytes()[log_before:]
+    assert b"Traceback" not in log
+    assert log.count(b"\n") < 20, log.decode()[-2000:]  # 300 refusals, a few throttled lines
+
+
+def _first_message(sock: socket.socket, wait_s: float = 2.0) -> dict[str, Any]:
+    """The first message the server sent on a socket we never wrote to."""
+    sock.settimeout(wait_s)
+    return _read_message(sock)
+
+
+def test_failed_hellos_are_limited_per_connection(server: ServerProcess) -> None:
+    with _connect(server, "tcp") as sock:
+        sock.settimeout(5)
+        for i in range(3):
+            sock.sendall(pack({"id": i, "op": "hello", "args": {"token": "guess"}}))
+        replies = [_read_message(sock) for _ in range(4)]
+        assert [r["error"]["code"] for r in replies] == ["unauthorized"] * 4
+        assert "too many failed hellos" in replies[3]["error"]["message"]
+        assert sock.recv(1) == b""  # closed by the server
