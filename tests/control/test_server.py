@@ -14,13 +14,13 @@ from typing import Any
 import msgpack
 import pytest
 
-from host.config import ControlConfig
+from host.config import ConfigError, ControlConfig, load_config
 from host.control.api import PoseSample
 from host.control.client import ControlClient, ControlRequestError
 from host.control.fake import FakeController
-from host.control.ops import OpContext
+from host.control.ops import OpContext, Role, dispatch
 from host.control.server import ControlServer, ControlServerError
-from host.control.wire import MAX_MESSAGE_BYTES
+from host.control.wire import MAX_MESSAGE_BYTES, pack
 from protocol import ParamId
 
 OP_TOKEN = "operator-secret-0123456789"
@@ -208,10 +208,83 @@ async def test_tcp_requires_hello_and_viewer_cannot_move(
         assert (await c.request("hello", token=VIEW_TOKEN))["role"] == "viewer"
         assert "controller" in await c.request("status")
         before = len(fake.calls)
-        with pytest.raises(ControlRequestError) as exc:
-            await c.request("estop")
-        assert exc.value.code == "forbidden"
+        for op in ("home", "clear", "param_persist"):
+            with pytest.raises(ControlRequestError) as exc:
+                await c.request(op)
+            assert exc.value.code == "forbidden"
         assert len(fake.calls) == before
+
+
+async def test_viewer_may_stop_and_estop(server: ControlServer, fake: FakeController) -> None:
+    assert server.tcp_port
+    async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
+        await c.request("hello", token=VIEW_TOKEN)
+        assert await c.request("stop") == {"sent": True, "acked": True}
+        assert await c.request("estop") == {"sent": True, "acked": True}
+    assert [name for name, _ in fake.calls[-2:]] == ["stop", "estop"]
+    assert fake.state.name == "ESTOP"
+
+
+async def test_estop_behind_a_full_pipeline_runs_at_once(
+    client: ControlClient, fake: FakeController
+) -> None:
+    gate = asyncio.Event()
+
+    async def slow_param(param: ParamId) -> int:
+        await gate.wait()
+        return 0
+
+    fake.get_param = slow_param  # type: ignore[method-assign]
+    pipeline = [{"id": 100 + i, "op": "param_get", "args": {"param": 1}} for i in range(17)]
+    await client.send_raw(b"".join(pack(m) for m in pipeline))
+    result = await asyncio.wait_for(client.request("estop"), 5)
+    assert result == {"sent": True, "acked": True}
+    assert fake.state.name == "ESTOP"
+    busy = [m for m in client.unmatched if m["id"] == 116]  # the 17th ordinary request
+    assert busy and busy[0]["error"]["code"] == "busy"
+    assert not [m for m in client.unmatched if m["id"] < 116]  # the 16 still wait
+    gate.set()
+
+
+async def test_estop_with_the_link_down_names_the_watchdog(
+    client: ControlClient, fake: FakeController
+) -> None:
+    await client.request("param_set", param="WATCHDOG_MS", value=800)
+    await fake.close()
+    for op in ("estop", "stop"):
+        with pytest.raises(ControlRequestError) as exc:
+            await client.request(op)
+        assert exc.value.code == "unavailable"
+        assert f"{op} not sent: the controller link is down" in exc.value.message
+        assert "watchdog stops the trolley" in exc.value.message
+        assert "800 ms" in exc.value.message
+
+
+async def test_dispatch_serves_a_caller_without_a_socket(fake: FakeController) -> None:
+    ctx = OpContext(fake)
+    assert await dispatch(ctx, Role.VIEWER, "stop", {}) == {
+        "ok": True,
+        "result": {"sent": True, "acked": True},
+    }
+    refused = await dispatch(ctx, Role.VIEWER, "move", {"position_mm": 1.0})
+    assert refused["error"]["code"] == "forbidden"
+    assert (await dispatch(ctx, Role.NONE, "status", {}))["error"]["code"] == "unauthorized"
+    assert (await dispatch(ctx, Role.OPERATOR, "move", {}))["error"]["code"] == "bad_args"
+    down = await dispatch(OpContext(None), Role.OPERATOR, "estop", {})
+    assert down["error"]["code"] == "unavailable"
+    assert down["error"]["detail"] == {
+        "sent": False,
+        "acked": False,
+        "watchdog_ms": 500,
+        "watchdog_known": False,
+    }
+    assert "500 ms, the default, unless changed" in down["error"]["message"]
+
+
+async def test_short_tokens_are_refused(tmp_path: Path) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "s.sock"), viewer_token="short")
+    with pytest.raises(ControlServerError, match="control.viewer_token: 5 characters"):
+        await ControlServer(OpContext(None), config).start()
 
 
 async def test_tcp_operator_may_move(server: ControlServer, fake: FakeController) -> None:
@@ -268,3 +341,33 @@ async def test_stale_socket_file_is_replaced(tmp_path: Path) -> None:
     finally:
         await srv.close()
     assert not path.exists()
+
+
+async def test_config_check_names_a_short_token(tmp_path: Path) -> None:
+    path = tmp_path / "orbitar.toml"
+    path.write_text('[control]\ntcp_enabled = true\noperator_token = "abc"\n')
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert "control.operator_token: 3 characters, need 16 or more" in str(exc.value)
+
+
+async def test_idle_clients_are_cut_off_but_subscribers_stay(
+    tmp_path: Path, fake: FakeController
+) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "idle.sock"), idle_timeout_s=1.0)
+    srv = ControlServer(OpContext(fake), config)
+    await srv.start()
+    try:
+        idle = await ControlClient.connect_unix(config.socket_path)
+        watcher = await ControlClient.connect_unix(config.socket_path)
+        await watcher.request("subscribe", topics=["state"])
+        with pytest.raises(ConnectionError):
+            await idle.next_event(timeout_s=5)
+        assert idle.unmatched[0]["error"]["code"] == "timeout"
+        assert "control.idle_timeout_s" in idle.unmatched[0]["error"]["message"]
+        assert not watcher.closed
+        assert (await watcher.request("status"))["link_up"] is True
+        await idle.close()
+        await watcher.close()
+    finally:
+        await srv.close()
