@@ -92,6 +92,9 @@ class ClientConnection:
         self._limit_bytes = limit
         self._pause_bytes = limit // 8  # stop reading requests above this backlog …
         self._resume_bytes = limit // 16  # … until it is below this
+        # drain() then waits whenever the kernel-side buffer alone passes the resume mark, so an
+        # idle writer always leaves the backlog below it and a paused reader is always woken.
+        writer.transport.set_write_buffer_limits(self._resume_bytes, self._resume_bytes // 4)
 
     def publish(self, event: dict[str, Any]) -> None:
         """Queue an event; a full queue drops its oldest entry and counts it."""

@@ -14,13 +14,14 @@ from typing import Any
 import msgpack
 import pytest
 
-from host.config import ConfigError, ControlConfig, load_config
+from host.config import ControlConfig, load_config
+from host.config_fields import ConfigError
 from host.control.api import PoseSample
 from host.control.client import ControlClient, ControlRequestError
 from host.control.fake import FakeController
 from host.control.ops import OpContext, Role, dispatch
 from host.control.server import ControlServer, ControlServerError
-from host.control.wire import MAX_MESSAGE_BYTES, pack
+from host.control.wire import MAX_MESSAGE_BYTES, pack, read_message
 from protocol import ParamId
 
 OP_TOKEN = "operator-secret-0123456789"
@@ -241,7 +242,8 @@ async def test_estop_behind_a_full_pipeline_runs_at_once(
     assert result == {"sent": True, "acked": True}
     assert fake.state.name == "ESTOP"
     busy = [m for m in client.unmatched if m["id"] == 116]  # the 17th ordinary request
-    assert busy and busy[0]["error"]["code"] == "busy"
+    assert busy
+    assert busy[0]["error"]["code"] == "busy"
     assert not [m for m in client.unmatched if m["id"] < 116]  # the 16 still wait
     gate.set()
 
@@ -283,7 +285,7 @@ async def test_dispatch_serves_a_caller_without_a_socket(fake: FakeController) -
 
 async def test_short_tokens_are_refused(tmp_path: Path) -> None:
     config = ControlConfig(socket_path=str(tmp_path / "s.sock"), viewer_token="short")
-    with pytest.raises(ControlServerError, match="control.viewer_token: 5 characters"):
+    with pytest.raises(ControlServerError, match=r"control\.viewer_token: 5 characters"):
         await ControlServer(OpContext(None), config).start()
 
 
@@ -369,5 +371,29 @@ async def test_idle_clients_are_cut_off_but_subscribers_stay(
         assert (await watcher.request("status"))["link_up"] is True
         await idle.close()
         await watcher.close()
+    finally:
+        await srv.close()
+
+
+async def test_a_slow_reader_is_paused_not_cut_off(tmp_path: Path) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "slow.sock"), client_buffer_kb=256)
+    srv = ControlServer(OpContext(None), config)
+    await srv.start()
+    try:
+        reader, writer = await asyncio.open_unix_connection(config.socket_path)
+        n = 4000  # ~500 kB of replies: twice the whole buffer, sixteen times the pause mark
+        writer.write(b"".join(pack({"id": i, "op": "status"}) for i in range(n)))
+        sending = asyncio.create_task(writer.drain())
+        await asyncio.sleep(0.5)  # not reading: the server stops reading us
+        assert srv.stats["read_pauses"] >= 1
+
+        async def read_all() -> list[Any]:
+            return [(await read_message(reader) or {}).get("id") for _ in range(n)]
+
+        ids = await asyncio.wait_for(read_all(), 15)  # resumes at once, not after stall_timeout_s
+        await sending
+        assert ids == list(range(n))
+        assert srv.stats["cut_off"] == 0
+        writer.close()
     finally:
         await srv.close()

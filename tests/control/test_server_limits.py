@@ -49,8 +49,9 @@ class ServerProcess:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
     tmp = tmp_path_factory.mktemp("limits")
+    path = str(tmp / "ctl.sock")
     fields = {
-        "socket_path": str(tmp / "ctl.sock"),
+        "socket_path": path,
         "tcp_enabled": True,
         "tcp_port": 0,
         "operator_token": TOKEN,
@@ -71,11 +72,12 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[ServerProcess]:
             stdout=subprocess.PIPE,
             stderr=err,
         )
-    assert proc.stdout is not None and proc.stdin is not None
+    assert proc.stdout is not None
+    assert proc.stdin is not None
     line = proc.stdout.readline()
     assert line, f"server did not start: {stderr.read_text()}"
     info = json.loads(line)
-    yield ServerProcess(proc, info["pid"], fields["socket_path"], info["tcp_port"], stderr)
+    yield ServerProcess(proc, info["pid"], path, info["tcp_port"], stderr)
     proc.stdin.close()
     try:
         proc.wait(timeout=10)
@@ -154,7 +156,8 @@ def test_idle_connection_flood_leaves_the_operator_a_way_in(server: ServerProces
         time.sleep(0.3)  # let the server accept (and refuse) them all
         assert fd_count(server.pid) <= base_fds + MAX_TCP + 2
         status = _unix_status(server.path)
-        assert status["ok"] is True and status["result"]["link_up"] is False
+        assert status["ok"] is True
+        assert status["result"]["link_up"] is False
         refused = _first_message(idle[-1])
         assert refused["error"]["code"] == "too_many_clients"
         assert "control.max_tcp_connections" in refused["error"]["message"]
