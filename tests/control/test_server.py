@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
 import stat
@@ -394,6 +395,26 @@ async def test_a_slow_reader_is_paused_not_cut_off(tmp_path: Path) -> None:
         await sending
         assert ids == list(range(n))
         assert srv.stats["cut_off"] == 0
+        writer.close()
+    finally:
+        await srv.close()
+
+
+async def test_replies_past_the_buffer_limit_cut_the_client_off(tmp_path: Path) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "big.sock"), client_buffer_kb=256)
+    srv = ControlServer(OpContext(None), config)
+    await srv.start()
+    try:
+        reader, writer = await asyncio.open_unix_connection(config.socket_path)
+        writer.write(pack({"id": 0, "op": "status"}))
+        await asyncio.sleep(0.2)
+        (conn,) = srv._clients
+        for i in range(20):  # replies of requests already in flight, 1.2 MB, never read
+            conn.reply({"id": i, "ok": True, "result": "x" * 60_000})
+        assert conn.backlog_bytes() == 0  # dropped at once: the memory is back
+        assert srv.stats["cut_off"] == 1
+        with contextlib.suppress(ConnectionError):
+            await asyncio.wait_for(reader.read(), 5)  # the connection ends
         writer.close()
     finally:
         await srv.close()
