@@ -147,6 +147,8 @@ class ClientConnection:
         """Hang up now (daemon shutdown): requests in flight are cancelled, not awaited."""
         self._shutdown = self._aborted = True
         self._hang_up()
+        if self._read_task is not None:
+            self._read_task.cancel()  # it may be waiting for output room, not for the peer
 
     def _hang_up(self) -> None:
         """Close; with bytes still unsent, abort, since a close would wait on them for ever."""

@@ -382,10 +382,13 @@ async def test_a_slow_reader_is_paused_not_cut_off(tmp_path: Path) -> None:
     await srv.start()
     try:
         reader, writer = await asyncio.open_unix_connection(config.socket_path)
-        n = 4000  # ~500 kB of replies: twice the whole buffer, sixteen times the pause mark
+        n = 12_000  # ~700 kB of replies: far past the kernel buffers and the 32 kB pause mark
         writer.write(b"".join(pack({"id": i, "op": "status"}) for i in range(n)))
         sending = asyncio.create_task(writer.drain())
-        await asyncio.sleep(0.5)  # not reading: the server stops reading us
+        for _ in range(200):  # not reading: the server stops reading us
+            if srv.stats["read_pauses"]:
+                break
+            await asyncio.sleep(0.05)
         assert srv.stats["read_pauses"] >= 1
 
         async def read_all() -> list[Any]:
