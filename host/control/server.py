@@ -43,6 +43,9 @@ MAX_INFLIGHT_PER_CLIENT = 16  # ordinary requests; stop and estop are not counte
 MAX_SAFETY_INFLIGHT = 64  # beyond this many stops in flight the next one waits for a slot
 FLUSH_TIMEOUT_S = 1.0
 REQUEST_GRACE_S = 5.0
+# asyncio accepts up to `backlog` connections in one go before any of them is refused, so the
+# backlog bounds the descriptors a connection flood holds beyond the caps.
+BACKLOG = 16
 MAX_HELLO_FAILURES = 3  # per connection, then it is closed
 HELLO_FAILURE_BURST = 20.0  # failed hellos tolerated at once over all connections …
 HELLO_FAILURE_RATE_PER_S = 2.0  # … and refilled at this rate; beyond, the connection is closed
@@ -383,17 +386,17 @@ class ControlServer:
         self._check_tokens()
         path = Path(self.config.socket_path)
         _clear_stale_socket(path)
-        unix = await asyncio.start_unix_server(self._on_unix, path=str(path))
+        unix = await asyncio.start_unix_server(self._on_unix, path=str(path), backlog=BACKLOG)
         self._servers.append(unix)
         _set_permissions(path, self.config.socket_mode, self.config.socket_group)
-        caps = self.config.max_unix_connections
+        caps = self.config.max_unix_connections + BACKLOG
         if self.config.tcp_enabled:
             tcp = await asyncio.start_server(
-                self._on_tcp, self.config.tcp_host, self.config.tcp_port
+                self._on_tcp, self.config.tcp_host, self.config.tcp_port, backlog=BACKLOG
             )
             self._servers.append(tcp)
             self.tcp_port = int(tcp.sockets[0].getsockname()[1])
-            caps += self.config.max_tcp_connections
+            caps += self.config.max_tcp_connections + BACKLOG
         soft, wanted = ensure_fd_room(caps)
         if soft < wanted:
             kv = {"nofile": soft, "wanted": wanted}
