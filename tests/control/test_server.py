@@ -354,6 +354,15 @@ async def test_config_check_names_a_short_token(tmp_path: Path) -> None:
     assert "control.operator_token: 3 characters, need 16 or more" in str(exc.value)
 
 
+async def test_config_check_names_bad_limits(tmp_path: Path) -> None:
+    path = tmp_path / "orbitar.toml"
+    path.write_text("[control]\nmax_tcp_connections = 0\nclient_buffer_kb = 10\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert "control.max_tcp_connections" in str(exc.value)
+    assert "control.client_buffer_kb" in str(exc.value)
+
+
 async def test_idle_clients_are_cut_off_but_subscribers_stay(
     tmp_path: Path, fake: FakeController
 ) -> None:
