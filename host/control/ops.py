@@ -69,6 +69,7 @@ class OpContext:
     pan_limits_rad: tuple[float, float] = (-math.pi, math.pi)
     tilt_limits_rad: tuple[float, float] = (-math.pi / 2, math.pi / 2)
     watchdog_ms: int | None = None  # the controller's WATCHDOG_MS, once read or written here
+    control_stats: Callable[[], Mapping[str, Any]] = dict  # the control server's counters
 
 
 Handler = Callable[[OpContext, Mapping[str, Any]], Awaitable[Any]]
@@ -116,6 +117,7 @@ async def op_status(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         "link_up": connected,
         "controller": state,
         "pose": None if pose is None else pose.to_dict(),
+        "control": dict(ctx.control_stats()),
     }
 
 

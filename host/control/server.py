@@ -369,6 +369,7 @@ class ControlServer:
             ("connections", "requests", "errors", "bad_requests", "events_dropped"), 0
         )
         self.stats.update(refused=0, cut_off=0, hello_failures=0, read_pauses=0)
+        context.control_stats = lambda: self.stats  # `status` shows refusals and cut-offs
         self.tcp_port: int | None = None
         self.throttled = ThrottledLog(log)
         self.hello_failures = TokenBucket(HELLO_FAILURE_BURST, HELLO_FAILURE_RATE_PER_S)

@@ -174,6 +174,9 @@ def test_idle_connection_flood_leaves_the_operator_a_way_in(server: ServerProces
         assert "control.max_tcp_connections" in codes["too_many_clients"]
         assert "control.hello_timeout_s" in codes["timeout"]  # admitted, never said hello
         assert fd_count(server.pid) <= base_fds + MAX_TCP + BACKLOG + 4
+        counters = _unix_status(server.path)["result"]["control"]
+        assert counters["refused"] > 0
+        assert counters["cut_off"] > 0
     finally:
         for sock in idle:
             sock.close()
