@@ -20,6 +20,7 @@ from host.config_fields import ConfigError
 from host.control.api import PoseSample
 from host.control.client import ControlClient, ControlRequestError
 from host.control.fake import FakeController
+from host.control.limits import TokenBucket
 from host.control.ops import OpContext, Role, dispatch
 from host.control.server import ControlServer, ControlServerError
 from host.control.wire import MAX_MESSAGE_BYTES, pack, read_message
@@ -430,3 +431,19 @@ async def test_replies_past_the_buffer_limit_cut_the_client_off(tmp_path: Path) 
         writer.close()
     finally:
         await srv.close()
+
+
+async def test_failed_hellos_over_all_connections_are_throttled(server: ControlServer) -> None:
+    assert server.tcp_port
+    server.hello_failures = TokenBucket(burst=2, rate_per_s=0.01)
+    for expect_closed in (False, False, True):  # the third guess in a row, on a new connection
+        async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
+            with pytest.raises(ControlRequestError):
+                await c.request("hello", token="guess-" * 4)
+            if expect_closed:
+                with pytest.raises(ConnectionError):
+                    await c.next_event(timeout_s=5)
+                assert "too many failed hellos" in c.unmatched[0]["error"]["message"]
+            else:
+                assert (await c.request("hello", token=OP_TOKEN))["role"] == "operator"
+    assert server.stats["hello_failures"] == 3
