@@ -29,17 +29,19 @@ SAFETY_OPS = frozenset({"stop", "estop"})  # any role, past every per-client lim
 WATCHDOG_DEFAULT_MS = PARAMS_BY_ID[ParamId.WATCHDOG_MS].default
 
 
-class Role(enum.IntEnum):
+class Role(enum.Enum):
     """What a client may do; a higher role may do everything a lower one may."""
 
-    NONE = 0  # TCP client before a successful hello
-    VIEWER = 1  # read-only ops, subscriptions, stop and estop
-    OPERATOR = 2  # everything, motion included
+    NONE = "none"  # TCP client before a successful hello
+    VIEWER = "viewer"  # read-only ops, subscriptions, stop and estop
+    OPERATOR = "operator"  # everything, motion included
 
-    @property
-    def label(self) -> str:
-        """The role's name on the wire."""
-        return self.name.lower()
+    def allows(self, least: Role) -> bool:
+        """True if this role may run what needs `least`."""
+        return _RANK[self] >= _RANK[least]
+
+
+_RANK = {Role.NONE: 0, Role.VIEWER: 1, Role.OPERATOR: 2}
 
 
 class OpError(Exception):
@@ -288,6 +290,6 @@ async def _run(ctx: OpContext, role: Role, op: Any, args: Any) -> Any:
     if op not in OPS:
         raise OpError("unknown_op", f"unknown op {op!r}")
     handler, least = OPS[op]
-    if role < least:
-        raise OpError("forbidden", f"{op!r} needs the {least.label} role")
+    if not role.allows(least):
+        raise OpError("forbidden", f"{op!r} needs the {least.value} role")
     return await handler(ctx, args)

@@ -282,7 +282,7 @@ class ClientConnection:
             if role is Role.NONE:
                 return self._failed_hello()
             self.role = role
-        return {"ok": True, "result": {"role": self.role.label, "topics": list(TOPICS)}}
+        return {"ok": True, "result": {"role": self.role.value, "topics": list(TOPICS)}}
 
     def _failed_hello(self) -> dict[str, Any]:
         """Count, log (throttled) and, past the limits, close after the reply."""
