@@ -227,7 +227,8 @@ class ClientConnection:
 
     async def _start_request(self, message: dict[str, Any]) -> None:
         """Run one request as its own task; stop and estop bypass the in-flight cap."""
-        safety = message.get("op") in SAFETY_OPS and self.role is not Role.NONE
+        op = message.get("op")
+        safety = isinstance(op, str) and op in SAFETY_OPS and self.role is not Role.NONE
         if safety:
             while self._safety >= MAX_SAFETY_INFLIGHT:  # stops in flight are already stopping it
                 await asyncio.wait(set(self._requests), return_when="FIRST_COMPLETED")

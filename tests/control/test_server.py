@@ -141,9 +141,11 @@ async def test_garbage_gets_error_reply_and_connection_survives(client: ControlC
     await client.send_raw(struct.pack(">I", len(array)) + array)
     no_id = msgpack.packb({"op": "status"})
     await client.send_raw(struct.pack(">I", len(no_id)) + no_id)
+    await client.send_raw(pack({"id": None, "op": ["estop"]}))  # unhashable op
+    await client.send_raw(pack({"id": {"a": 1}, "op": "fly"}))  # echoed back: unhashable id
     assert (await client.request("status"))["link_up"] is True
     codes = [m["error"]["code"] for m in client.unmatched]
-    assert codes == ["bad_request", "bad_request", "bad_request"]
+    assert codes == ["bad_request"] * 4 + ["unknown_op"]
 
 
 async def test_oversized_request_gets_error_then_close(client: ControlClient) -> None:
