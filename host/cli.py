@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from host.bus import fleet
 from host.control import cli_commands
 from host.demo import run as demo_run
 from host.rig import cli as rig_cli
@@ -30,6 +31,7 @@ def build_parser() -> argparse.ArgumentParser:
     cli_commands.add_parsers(sub)
     rig_cli.add_parser(sub)
     _add_sim_parser(sub)
+    fleet.add_parser(sub)
     return parser
 
 
