@@ -37,6 +37,7 @@ class OpContext:
     calibration: Callable[[], Mapping[str, Any]] = dict
     pan_limits_rad: tuple[float, float] = (-math.pi, math.pi)
     tilt_limits_rad: tuple[float, float] = (-math.pi / 2, math.pi / 2)
+    commissioning: Any = None  # host.commissioning.env.CommissioningEnv (docs/COMMISSIONING.md)
 
 
 Handler = Callable[[OpContext, Mapping[str, Any]], Awaitable[Any]]
@@ -124,12 +125,14 @@ async def op_jog(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
 async def op_stop(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Controlled stop."""
+    cancel_runs(ctx, "STOP")  # first, so a calibration run cannot command a motion after it
     await _controller(ctx).stop()
     return None
 
 
 async def op_estop(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Emergency stop."""
+    cancel_runs(ctx, "ESTOP")
     await _controller(ctx).estop()
     return None
 
@@ -190,3 +193,8 @@ OPS: dict[str, tuple[Handler, bool]] = {
     "param_set": (op_param_set, True),
     "param_persist": (op_param_persist, True),
 }
+
+# The commissioning runs (calibrate_*, survey_*): their own module, joined to the table here.
+from host.commissioning.ops import COMMISSIONING_OPS, cancel_runs  # noqa: E402
+
+OPS.update(COMMISSIONING_OPS)

@@ -18,6 +18,7 @@ from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import Any
 
+from host.commissioning.env import CommissioningEnv
 from host.config import Config, load_config
 from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
@@ -65,6 +66,7 @@ class Daemon:
         config_path: str | Path | None = None,
         notifier: Notifier | None = None,
         calibration: CalibrationProvider | None = None,
+        commissioning: CommissioningEnv | None = None,
     ) -> None:
         self.config = config
         self.calibration = calibration or self._config_calibration
@@ -83,6 +85,10 @@ class Daemon:
             frame_loop_factory(config, self.controller, self.on_pose, self.record)
             if frame_loop_factory
             else None
+        )
+        # Calibration runs see the frame loop's camera through its tap (docs/COMMISSIONING.md).
+        self.commissioning = commissioning or CommissioningEnv.for_daemon(
+            config, lambda: getattr(self.frame_loop, "frame_tap", None)
         )
         self.server = ControlServer(self._op_context(), config.control)
         self._stop = asyncio.Event()
@@ -207,6 +213,7 @@ class Daemon:
         """Controlled stop of the trolley, then close everything, within about 2 s."""
         self.phase = Phase.STOPPING
         self.notifier.stopping("stopping: halting the trolley")
+        await self.commissioning.jobs.aclose()  # a run cut short writes nothing
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -331,6 +338,7 @@ class Daemon:
             calibration=lambda: self.calibration(),
             pan_limits_rad=(head.pan_min_rad, head.pan_max_rad),
             tilt_limits_rad=(head.tilt_min_rad, head.tilt_max_rad),
+            commissioning=self.commissioning,
         )
 
     def _config_calibration(self) -> dict[str, Any]:

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from host.commissioning.frames import FrameTap
 from host.config import Config, SegmentConfig
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
@@ -480,12 +481,13 @@ class CameraPoseLoop:
         sink: PoseSink,
         record_tap: RecordTap,
     ) -> None:
-        self.source = source
+        self.frame_tap = FrameTap(source)  # the newest frame, for calibration runs
+        self.source: FrameSource = self.frame_tap
         self.controller = controller
         self.sink = sink
         self.record_tap = record_tap
         self.unregistered = 0  # frames whose exposure had no usable pose
-        self.loop: FrameLoop[Registration] = FrameLoop(source, registrar, [self._publish])
+        self.loop: FrameLoop[Registration] = FrameLoop(self.source, registrar, [self._publish])
         self._meter = RateMeter()
 
     @property

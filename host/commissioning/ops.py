@@ -1,0 +1,189 @@
+"""The commissioning operations of the control socket (docs/COMMISSIONING.md).
+
+`calibrate_intrinsics` (and the other calibrations) start a run in the daemon and return its id
+at once; `commissioning_status` shows its progress (views, coverage bars) and, when it is over,
+its verdict and result; `commissioning_cancel` ends it, as any STOP or ESTOP does. Arguments are
+checked before anything moves, with the key named in the error. `COMMISSIONING_OPS` joins
+host.control.ops.OPS.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from host.calibration.board import BoardDetector, BoardSpec
+from host.commissioning import intrinsics_run
+from host.commissioning.env import CommissioningEnv
+from host.commissioning.jobs import JobBusyError, Progress
+from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
+from host.commissioning.plan import IMAGE_TARGETS, board_plan
+from host.commissioning.report import run_dir, write_page
+from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError
+from host.rig import update_rig
+
+MAX_STATIONS = 64
+MAX_ABS_MM = 1e6
+
+
+def env_of(ctx: OpContext) -> CommissioningEnv:
+    """The daemon's commissioning environment (`unavailable` if it has none)."""
+    env = getattr(ctx, "commissioning", None)
+    if not isinstance(env, CommissioningEnv):
+        raise OpError("unavailable", "this daemon has no commissioning support configured")
+    return env
+
+
+def vector3(args: Mapping[str, Any], key: str) -> np.ndarray:
+    """A finite [x, y, z] argument in mm."""
+    v = args.get(key)
+    ok = isinstance(v, list | tuple) and len(v) == 3
+    if not ok or not all(_finite(x) and abs(x) < MAX_ABS_MM for x in v):  # type: ignore[union-attr]
+        raise OpError("bad_args", f"{key} = {v!r}: expected [x, y, z] in mm, finite")
+    return np.array(v, dtype=np.float64)
+
+
+def stations(args: Mapping[str, Any], ctx: OpContext) -> list[float]:
+    """`stations_mm`: arc lengths to view from (default: where the trolley is now)."""
+    v = args.get("stations_mm")
+    if v is None:
+        pos = ctx.controller.snapshot().get("position_mm") if ctx.controller else None
+        if pos is None:
+            raise OpError("bad_args", "stations_mm missing and the trolley position is unknown")
+        return [float(pos)]
+    if not isinstance(v, list) or not 1 <= len(v) <= MAX_STATIONS or not all(_finite(x) for x in v):
+        raise OpError(
+            "bad_args", f"stations_mm = {v!r}: expected 1-{MAX_STATIONS} finite arc lengths"
+        )
+    return [float(x) for x in v]
+
+
+def board_spec(args: Mapping[str, Any]) -> BoardSpec:
+    """`board`: the printed board's dimensions (default: BoardSpec())."""
+    v = args.get("board")
+    if v is None:
+        return BoardSpec()
+    if not isinstance(v, dict):
+        raise OpError("bad_args", f"board = {v!r}: expected a map of BoardSpec fields")
+    try:
+        return BoardSpec.from_dict(v)
+    except (TypeError, ValueError) as exc:
+        raise OpError("bad_args", str(exc)) from exc
+
+
+def thresholds(args: Mapping[str, Any]) -> intrinsics_run.Thresholds:
+    """Optional `max_rms_px` and `min_views` overrides of the stated thresholds."""
+    base = intrinsics_run.Thresholds()
+    rms = args.get("max_rms_px", base.max_rms_px)
+    views = args.get("min_views", base.min_views)
+    if not _finite(rms) or not 0.0 < rms <= 5.0:
+        raise OpError("bad_args", f"max_rms_px = {rms!r}: expected a number in (0, 5]")
+    if isinstance(views, bool) or not isinstance(views, int) or not 3 <= views <= 500:
+        raise OpError("bad_args", f"min_views = {views!r}: expected an integer in [3, 500]")
+    return intrinsics_run.Thresholds(
+        float(rms), views, base.max_rel_sigma_focal, base.max_sigma_centre_px
+    )
+
+
+async def op_calibrate_intrinsics(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start an intrinsics run: board_centre_mm (world, rough), stations_mm, board, write."""
+    env = env_of(ctx)
+    centre = vector3(args, "board_centre_mm")
+    spec, limits = board_spec(args), thresholds(args)
+    where = stations(args, ctx)
+    speed = float(args.get("speed_mm_s", TRAVEL_SPEED_MM_S))
+    if not _finite(speed) or not 1.0 <= speed <= MAX_SPEED_MM_S:
+        raise OpError(
+            "bad_args", f"speed_mm_s = {args.get('speed_mm_s')!r}: expected 1-{MAX_SPEED_MM_S}"
+        )
+    write = bool(args.get("write", True))
+    full = bool(args.get("full_distortion", False))
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None:
+        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
+    controller = ctx.controller
+    head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        tap = env.frames()
+        if tap is None:
+            raise AbortedError("the camera went away")
+        rig, camera = env.kinematics()
+        plan = board_plan(rig, camera, centre, where, IMAGE_TARGETS, head_limits)
+        progress["planned"] = len(plan)
+        if not plan:
+            raise AbortedError("no view of the board can be planned from these stations")
+        io = RigIO(controller, tap, speed)
+        views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
+        progress["phase"] = "solving"
+        outcome = await asyncio.to_thread(intrinsics_run.judge, views, camera, limits, full)
+        report = await asyncio.to_thread(_write_report, env.report_root, outcome, limits)
+        written = None
+        if outcome.passed and write and env.rig_path is not None:
+            progress["phase"] = "writing"
+            await asyncio.to_thread(
+                update_rig, env.rig_path, intrinsics_run.rig_update(outcome), "calibrate intrinsics"
+            )
+            written = str(env.rig_path)
+        progress["phase"] = "done"
+        return {**outcome.summary(), "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("intrinsics", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+async def op_commissioning_status(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """The current (or last) run: state, progress and, when over, its result."""
+    env = env_of(ctx)
+    job_id = args.get("job")
+    if job_id is not None and (isinstance(job_id, bool) or not isinstance(job_id, int)):
+        raise OpError("bad_args", f"job = {job_id!r}: expected a run id")
+    job = env.jobs.get(job_id)
+    if job is None:
+        return {"state": "none"}
+    return job.status()
+
+
+async def op_commissioning_cancel(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Cancel the running run (nothing is written)."""
+    return {"cancelled": env_of(ctx).jobs.cancel_all("cancelled by a client")}
+
+
+def cancel_runs(ctx: OpContext, reason: str) -> None:
+    """Hook for STOP and ESTOP: end any run before the stop is sent."""
+    env = getattr(ctx, "commissioning", None)
+    if isinstance(env, CommissioningEnv):
+        env.jobs.cancel_all(reason)
+
+
+def _write_report(
+    root: Path, outcome: intrinsics_run.Outcome, limits: intrinsics_run.Thresholds
+) -> str:
+    """The run's report directory and page."""
+    directory = run_dir(root, "intrinsics")
+    return str(write_page(directory, intrinsics_run.page(outcome, limits)))
+
+
+def _path(env: CommissioningEnv) -> str | None:
+    return None if env.rig_path is None else str(env.rig_path)
+
+
+def _finite(x: Any) -> bool:
+    return not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x)
+
+
+# op name → (handler, needs the operator role); merged into host.control.ops.OPS
+COMMISSIONING_OPS: dict[str, tuple[Handler, bool]] = {
+    "calibrate_intrinsics": (op_calibrate_intrinsics, True),
+    "commissioning_status": (op_commissioning_status, False),
+    "commissioning_cancel": (op_commissioning_cancel, True),
+}
