@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from host.commissioning import cli as commissioning_cli
 from host.control import cli_commands
 from host.demo import run as demo_run
 
@@ -27,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     demo_run.add_parser(sub)
     cli_commands.add_parsers(sub)
+    commissioning_cli.add_parsers(sub)
     _add_sim_parser(sub)
     return parser
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import json
 from pathlib import Path
 
 import pytest
 
-from host.commissioning.client import CommissioningPlan, commission, run_op
+from host.cli import main as cli_main
+from host.commissioning.client import CommissioningPlan, commission
 from host.rig import load_rig
 from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, sim_daemon
 
@@ -25,17 +27,28 @@ def args(**extra: object) -> dict[str, object]:
     }
 
 
-async def test_intrinsics_through_the_daemon_pass_within_three_sigma_and_written(
-    tmp_path: Path,
+async def test_orbitar_calibrate_intrinsics_passes_within_three_sigma_and_writes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     async with sim_daemon(tmp_path, seed=5) as h:
         await h.request("home")
-        seen: list[dict[str, object]] = []
-        plan = CommissioningPlan().intrinsics(**args())  # type: ignore[arg-type]
-        [(op, result)] = await commission(h.client, plan, seen.append)
-    assert op == "calibrate_intrinsics"
-    assert result["passed"], result["reasons"]
-    assert any("coverage" in p for p in seen)
+        a = args()
+        argv = ["calibrate", "intrinsics", "--socket", str(tmp_path / "ctl.sock"), "--json"]
+        centre = [str(x) for x in a["board_centre_mm"]]  # type: ignore[attr-defined]
+        argv += ["--board-centre", *centre, "--stations", *[str(s) for s in STATIONS_MM]]
+        argv += [
+            "--squares",
+            f"{BOARD.squares_x}x{BOARD.squares_y}",
+            "--square-mm",
+            str(BOARD.square_mm),
+        ]
+        argv += ["--marker-mm", str(BOARD.marker_mm), "--speed", "1500"]
+        code = await asyncio.to_thread(cli_main, argv)
+    out = capsys.readouterr()
+    result = json.loads(out.out)
+    assert code == 0, result["reasons"]
+    assert result["passed"]
+    assert "coverage" in out.err  # progress was shown
     for key in KEYS:
         err = result["camera"][key] - getattr(h.lens, key)
         assert abs(err) < 3.0 * result["sigma"][key], (key, err, result["sigma"][key])
@@ -43,7 +56,6 @@ async def test_intrinsics_through_the_daemon_pass_within_three_sigma_and_written
     intr = load_rig(h.rig_path).camera.intrinsics
     assert intr.get("fx") == pytest.approx(result["camera"]["fx"])
     assert intr.provenance.method.startswith("calibrate intrinsics")
-    assert Path(result["report"]).exists()
     assert "PASS" in Path(result["report"]).read_text()
 
 
@@ -52,7 +64,8 @@ async def test_blurred_views_fail_with_a_clear_message_and_write_nothing(tmp_pat
     async with sim_daemon(tmp_path, seed=6, blur_mm=6.0) as h:
         before = h.rig_path.read_text()
         await h.request("home")
-        result = await run_op(h.client, "calibrate_intrinsics", args(stations_mm=STATIONS_MM[:1]))
+        plan = CommissioningPlan().intrinsics(**args(stations_mm=STATIONS_MM[:1]))  # type: ignore[arg-type]
+        [(_, result)] = await commission(h.client, plan)
     assert not result["passed"]
     assert "too few views" in result["reasons"][0]
     assert "blurred" in result["reasons"][0]
