@@ -71,6 +71,11 @@ class CommissioningPlan:
         )
         return self
 
+    def add(self, op: str, **args: Any) -> CommissioningPlan:
+        """Add any commissioning op with its arguments (calibrate_head, calibrate_check, …)."""
+        self.steps.append((op, args))
+        return self
+
 
 async def commission(
     client: ControlClient, plan: CommissioningPlan, on_progress: ProgressFn | None = None

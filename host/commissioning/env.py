@@ -14,10 +14,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBoard
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
+from host.geometry.transforms import FloatArray
 from host.rig import build_camera, build_kinematics, load_rig
 
 if TYPE_CHECKING:
@@ -34,6 +37,14 @@ def _default_kinematics() -> tuple[Rig, CameraModel]:
     return Rig(), CameraModel()
 
 
+def _no_home() -> float:
+    return 0.0
+
+
+def _no_camera_cov() -> FloatArray | None:
+    return None
+
+
 @dataclass
 class CommissioningEnv:
     """The daemon's side of a commissioning run."""
@@ -43,6 +54,9 @@ class CommissioningEnv:
     rig_path: Path | None = None
     report_root: Path = DEFAULT_REPORT_ROOT
     jobs: JobBoard = field(default_factory=JobBoard)
+    home_s_mm: Callable[[], float] = _no_home  # track arc length of the controller's zero
+    # 10×10 covariance of the camera in use (host.rig.INTRINSIC_KEYS order), None if unknown
+    camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
 
     @classmethod
     def for_rig_file(
@@ -54,7 +68,16 @@ class CommissioningEnv:
             spec = load_rig(path)
             return build_kinematics(spec), build_camera(spec)
 
-        return cls(frames, kinematics, path, report_root)
+        def home() -> float:
+            return float(load_rig(path).track.home.value)
+
+        def camera_cov() -> FloatArray:
+            intr = load_rig(path).camera.intrinsics
+            if intr.covariance is not None:
+                return np.array(intr.covariance, dtype=np.float64)
+            return np.diag(np.square(intr.sigma))
+
+        return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov)
 
     @classmethod
     def for_daemon(cls, config: Config, frames: Callable[[], FrameTap | None]) -> CommissioningEnv:
@@ -66,4 +89,4 @@ class CommissioningEnv:
 
             return build_rig(config), camera_of(config)
 
-        return cls(frames, kinematics)
+        return cls(frames, kinematics, home_s_mm=lambda: float(config.track.home_s_mm))

@@ -56,6 +56,8 @@ class CapturedView:
     detection: Detection | None = None
     cover: coverage.ViewCoverage | None = None
     attempts: int = 0
+    s_mm: float = float("nan")  # where the host saw the trolley and the head at the frame
+    head_rad: tuple[float, float] = (float("nan"), float("nan"))
 
 
 @dataclass
@@ -116,6 +118,11 @@ async def capture(
         view = CapturedView(target, "not found")
         for attempt in range(RETAKES + 1):
             frame = await io.grab()
+            snap = io.snapshot()
+            head = snap.get("head_rad") or (float("nan"), float("nan"))
+            s_mm = io.s_mm(snap)
+            view.s_mm = float("nan") if s_mm is None else s_mm
+            view.head_rad = (float(head[0]), float(head[1]))
             det = await asyncio.to_thread(detector.detect, frame.image)
             view.attempts = attempt + 1
             if det is None:

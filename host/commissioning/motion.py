@@ -46,6 +46,12 @@ class RigIO:
     frames: FrameTap
     speed_mm_s: float = TRAVEL_SPEED_MM_S
     settle_s: float = SETTLE_S
+    home_s_mm: float = 0.0  # plans speak track arc length; the controller, its own zero
+
+    def s_mm(self, snap: Mapping[str, Any]) -> float | None:
+        """Track arc length of the trolley in a snapshot (encoder plus the surveyed home)."""
+        pos = snap.get("position_mm")
+        return None if pos is None else float(pos) + self.home_s_mm
 
     def snapshot(self) -> Mapping[str, Any]:
         """The controller's state; AbortedError if motion must not go on."""

@@ -18,13 +18,14 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import intrinsics_run
+from host.commissioning import head_run, intrinsics_run
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.jobs import JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
 from host.commissioning.plan import IMAGE_TARGETS, board_plan
-from host.commissioning.report import run_dir, write_page
+from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError
+from host.geometry.transforms import FloatArray
 from host.rig import update_rig
 
 MAX_STATIONS = 64
@@ -92,17 +93,53 @@ def thresholds(args: Mapping[str, Any]) -> intrinsics_run.Thresholds:
 
 async def op_calibrate_intrinsics(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Start an intrinsics run: board_centre_mm (world, rough), stations_mm, board, write."""
-    env = env_of(ctx)
     centre = vector3(args, "board_centre_mm")
-    spec, limits = board_spec(args), thresholds(args)
+    limits = thresholds(args)
+    full = bool(args.get("full_distortion", False))
+
+    def finish(
+        views: list[Any], rig: Any, camera: Any
+    ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        out = intrinsics_run.judge(views, camera, limits, full)
+        updates = intrinsics_run.rig_update(out) if out.passed else {}
+        return out.summary(), intrinsics_run.page(out, limits), updates
+
+    return _start_capture_run(ctx, args, "intrinsics", centre, finish)
+
+
+def board_pose(args: Mapping[str, Any]) -> tuple[FloatArray, FloatArray]:
+    """`board_pose` (4×4, world, surveyed) and its 6×6 local covariance from the σ given."""
+    v = args.get("board_pose")
+    try:
+        T = np.array(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        T = np.zeros(0)
+    if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise OpError("bad_args", f"board_pose = {v!r}: expected a 4×4 rigid transform (mm)")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise OpError("bad_args", "board_pose: its 3×3 block is not a rotation")
+    sig_mm = args.get("board_sigma_mm", 1.0)
+    sig_rad = args.get("board_sigma_rad", 1e-3)
+    if not _finite(sig_mm) or not _finite(sig_rad) or sig_mm < 0 or sig_rad < 0:
+        raise OpError("bad_args", "board_sigma_mm, board_sigma_rad: expected non-negative numbers")
+    cov = np.diag([sig_rad**2] * 3 + [sig_mm**2] * 3)
+    return T, cov
+
+
+def _start_capture_run(
+    ctx: OpContext, args: Mapping[str, Any], kind: str, centre: FloatArray,
+    finish: Any,
+) -> dict[str, Any]:  # fmt: skip
+    """Start a run that captures board views along a plan, then calls `finish` on them."""
+    env = env_of(ctx)
+    spec = board_spec(args)
     where = stations(args, ctx)
     speed = float(args.get("speed_mm_s", TRAVEL_SPEED_MM_S))
     if not _finite(speed) or not 1.0 <= speed <= MAX_SPEED_MM_S:
         raise OpError(
             "bad_args", f"speed_mm_s = {args.get('speed_mm_s')!r}: expected 1-{MAX_SPEED_MM_S}"
         )
-    write = bool(args.get("write", True))
-    full = bool(args.get("full_distortion", False))
     if ctx.controller is None or not ctx.controller.connected:
         raise OpError("unavailable", "the controller link is not up")
     if env.frames() is None:
@@ -119,26 +156,68 @@ async def op_calibrate_intrinsics(ctx: OpContext, args: Mapping[str, Any]) -> An
         progress["planned"] = len(plan)
         if not plan:
             raise AbortedError("no view of the board can be planned from these stations")
-        io = RigIO(controller, tap, speed)
+        io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
         views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
         progress["phase"] = "solving"
-        outcome = await asyncio.to_thread(intrinsics_run.judge, views, camera, limits, full)
-        report = await asyncio.to_thread(_write_report, env.report_root, outcome, limits)
+        summary, page, updates = await asyncio.to_thread(finish, views, rig, camera)
+        report = await asyncio.to_thread(_write, env.report_root, kind, page)
         written = None
-        if outcome.passed and write and env.rig_path is not None:
+        if summary["passed"] and updates and bool(args.get("write", True)) and env.rig_path:
             progress["phase"] = "writing"
-            await asyncio.to_thread(
-                update_rig, env.rig_path, intrinsics_run.rig_update(outcome), "calibrate intrinsics"
-            )
+            await asyncio.to_thread(update_rig, env.rig_path, updates, f"calibrate {kind}")
             written = str(env.rig_path)
         progress["phase"] = "done"
-        return {**outcome.summary(), "report": report, "written": written, "rig_file": _path(env)}
+        return {**summary, "report": report, "written": written, "rig_file": _path(env)}
 
     try:
-        job = env.jobs.start("intrinsics", run)
+        job = env.jobs.start(kind, run)
     except JobBusyError as exc:
         raise OpError("busy", str(exc)) from exc
     return {"job": job.id, "kind": job.kind}
+
+
+async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a head run: board_pose (surveyed), stations_mm; solves M_cr and T_w_track."""
+    T_w_b, cov_b = board_pose(args)
+    spec = board_spec(args)
+    limits = head_run.HeadThresholds()
+
+    def finish(
+        views: list[Any], rig: Any, camera: Any
+    ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        out = head_run.judge_head(
+            views, rig, camera, T_w_b, cov_b, limits, env_of(ctx).camera_cov()
+        )
+        updates = head_run.head_rig_update(out, True) if out.passed else {}
+        return out.summary(), head_run.head_page(out, limits), updates
+
+    return _start_capture_run(
+        ctx, args, "head", (T_w_b @ np.append(spec.centre_mm, 1.0))[:3], finish
+    )
+
+
+async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start the acceptance test: predicted against measured corners from new poses."""
+    T_w_b, _ = board_pose(args)
+    spec = board_spec(args)
+    limit = args.get("max_rms_px", 1.0)
+    if not _finite(limit) or not 0.0 < limit <= 10.0:
+        raise OpError("bad_args", f"max_rms_px = {limit!r}: expected a number in (0, 10]")
+
+    def finish(
+        views: list[Any], rig: Any, camera: Any
+    ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        out = head_run.check_views(views, rig, camera, T_w_b, float(limit))
+        return out.summary(), head_run.check_page(out, float(limit)), {}
+
+    return _start_capture_run(
+        ctx, args, "check", (T_w_b @ np.append(spec.centre_mm, 1.0))[:3], finish
+    )
+
+
+def _write(root: Path, kind: str, page: Page) -> str:
+    """A run's report directory and page."""
+    return str(write_page(run_dir(root, kind), page))
 
 
 async def op_commissioning_status(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -165,14 +244,6 @@ def cancel_runs(ctx: OpContext, reason: str) -> None:
         env.jobs.cancel_all(reason)
 
 
-def _write_report(
-    root: Path, outcome: intrinsics_run.Outcome, limits: intrinsics_run.Thresholds
-) -> str:
-    """The run's report directory and page."""
-    directory = run_dir(root, "intrinsics")
-    return str(write_page(directory, intrinsics_run.page(outcome, limits)))
-
-
 def _path(env: CommissioningEnv) -> str | None:
     return None if env.rig_path is None else str(env.rig_path)
 
@@ -184,6 +255,8 @@ def _finite(x: Any) -> bool:
 # op name → (handler, needs the operator role); merged into host.control.ops.OPS
 COMMISSIONING_OPS: dict[str, tuple[Handler, bool]] = {
     "calibrate_intrinsics": (op_calibrate_intrinsics, True),
+    "calibrate_head": (op_calibrate_head, True),
+    "calibrate_check": (op_calibrate_check, True),
     "commissioning_status": (op_commissioning_status, False),
     "commissioning_cancel": (op_commissioning_cancel, True),
 }

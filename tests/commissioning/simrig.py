@@ -72,6 +72,7 @@ class SimBoardLoop:
     board: PlacedBoard
     clock: FrameClock
     blur_mm: float = 0.0  # smear every frame by this much camera motion (a shaking mount)
+    home_s_mm: float = 150.0  # true arc length of the controller's zero (the rig file: 150 ± 1)
     frame_tap: FrameTap = field(init=False)
     frames: int = 0
 
@@ -91,7 +92,7 @@ class SimBoardLoop:
     async def run(self) -> None:
         while True:
             exposed_ns = time.monotonic_ns()
-            s = self.controller.position_mm
+            s = self.controller.position_mm + self.home_s_mm
             pan, tilt = self.controller.head_rad
             image = await asyncio.to_thread(self._render, s, pan, tilt)
             self.frames += 1
@@ -134,7 +135,8 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     placed = PlacedBoard(BOARD.make(), board_pose(rng))
     fake = FakeController()
     sim = SyntheticCamera(lens, seed=seed, blur_samples=4)
-    loop = SimBoardLoop(fake, rig, sim, placed, FrameClock(seed=seed), blur_mm)
+    home = 150.0 + float(rng.normal(0.0, 0.3))  # surveyed to ~1 mm: RigSpec() says 150
+    loop = SimBoardLoop(fake, rig, sim, placed, FrameClock(seed=seed), blur_mm, home)
     rig_path = tmp / "rig.toml"
     save_rig(RigSpec(), rig_path)
     env = CommissioningEnv.for_rig_file(rig_path, lambda: loop.frame_tap, tmp / "reports")

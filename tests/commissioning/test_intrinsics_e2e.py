@@ -6,10 +6,12 @@ import asyncio
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from host.cli import main as cli_main
 from host.commissioning.client import CommissioningPlan, commission
+from host.geometry.transforms import R_to_rotvec, euler_zyx, make_T
 from host.rig import load_rig
 from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, sim_daemon
 
@@ -89,3 +91,49 @@ async def test_stop_cancels_the_run_and_the_rig_file_is_untouched(tmp_path: Path
     assert status["state"] == "cancelled"
     assert status["reason"] == "STOP"
     assert h.rig_path.read_text() == before
+
+
+def local_error(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """δ with truth = est · exp(δ), (rotation vector, translation)."""
+    d = np.linalg.inv(est) @ truth
+    return np.concatenate([R_to_rotvec(d[:3, :3]), d[:3, 3]])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [8, 9, 10])
+async def test_commissioning_sequence_recovers_the_chain_within_three_sigma(
+    tmp_path: Path, seed: int
+) -> None:
+    """Intrinsics, then M_cr and the track placement, then the acceptance check from new poses."""
+    async with sim_daemon(tmp_path, seed=seed) as h:
+        await h.request("home")
+        rng = np.random.default_rng(0)
+        surveyed = h.loop.board.T_w_b @ make_T(
+            euler_zyx(*rng.normal(0, 1e-3, 3)), rng.normal(0, 1.0, 3)
+        )
+        pose_args = {
+            "board_pose": surveyed.tolist(),
+            "board": BOARD.to_dict(),
+            "speed_mm_s": 1500.0,
+        }
+        plan = (
+            CommissioningPlan()
+            .intrinsics(**args(stations_mm=[700.0, 1700.0, 2700.0]))  # type: ignore[arg-type]
+            .add("calibrate_head", stations_mm=[700.0, 1700.0, 2700.0, 3300.0], **pose_args)
+            .add("calibrate_check", stations_mm=[1200.0, 2300.0], **pose_args)
+        )
+        results = dict(await commission(h.client, plan))
+    assert [r["passed"] for r in results.values()] == [True, True, True], {
+        k: r["reasons"] for k, r in results.items()
+    }
+    head = results["calibrate_head"]
+    err = local_error(np.array(head["m_cr"]), h.rig.T_r_c)
+    sig = np.sqrt(np.diag(np.array(head["m_cr_covariance"])))
+    assert np.all(np.abs(err) < 3 * sig), (err, sig)
+    err_k = local_error(np.array(head["T_w_track"]), h.rig.track.T_w_track)
+    sig_k = np.sqrt(np.diag(np.array(head["T_w_track_covariance"])))
+    assert np.all(np.abs(err_k) < 3 * sig_k), (err_k, sig_k)
+    spec = load_rig(h.rig_path)
+    assert spec.head.m_cr.provenance.method.startswith("calibrate head")
+    assert results["calibrate_check"]["rms_px"] < 1.0
+    print(f"seed {seed}: check RMS {results['calibrate_check']['rms_px']:.3f} px, M_cr error {err}")
