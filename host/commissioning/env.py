@@ -9,24 +9,30 @@ writes nothing. Reports go to `report_root`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import logging
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBoard
+from host.experiments.budget import BudgetInputs, inputs_from_rig, overlay_sigma
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
+from host.geometry.model import load_model, manipulator_wireframe
 from host.geometry.transforms import FloatArray
 from host.rig import build_camera, build_kinematics, load_rig
 
 if TYPE_CHECKING:
     from host.config import Config
 
+log = logging.getLogger(__name__)
+
 DEFAULT_REPORT_ROOT = Path("orbitar-commissioning")
+BUILTIN_MODEL = "builtin:manipulator"
 
 
 def _no_frames() -> FrameTap | None:
@@ -45,6 +51,10 @@ def _no_camera_cov() -> FloatArray | None:
     return None
 
 
+def _no_budget() -> tuple[BudgetInputs, FloatArray] | None:
+    return None
+
+
 @dataclass
 class CommissioningEnv:
     """The daemon's side of a commissioning run."""
@@ -57,6 +67,25 @@ class CommissioningEnv:
     home_s_mm: Callable[[], float] = _no_home  # track arc length of the controller's zero
     # 10×10 covariance of the camera in use (host.rig.INTRINSIC_KEYS order), None if unknown
     camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
+    # the error budget's inputs and the model points it is evaluated on (None: no budget)
+    budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
+
+    def overlay_sigma_px(self, snapshot: Mapping[str, Any]) -> float | None:
+        """Predicted overlay σ at the controller's current pose; None when unknown (logged)."""
+        pos, head = snapshot.get("position_mm"), snapshot.get("head_rad")
+        if pos is None or not head:
+            return None
+        try:
+            got = self.budget()
+            if got is None:
+                return None
+            inputs, points = got
+            s_mm = float(pos) + self.home_s_mm()
+            b = overlay_sigma(inputs, s_mm, float(head[0]), float(head[1]), points)
+        except Exception as exc:  # a status must never fail on a bad rig file
+            log.warning("overlay budget unavailable", extra={"kv": {"error": exc}})
+            return None
+        return round(b.sigma_px, 3) if np.isfinite(b.sigma_px) else None
 
     @classmethod
     def for_rig_file(
@@ -77,7 +106,21 @@ class CommissioningEnv:
                 return np.array(intr.covariance, dtype=np.float64)
             return np.diag(np.square(intr.sigma))
 
-        return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov)
+        def budget() -> tuple[BudgetInputs, FloatArray]:
+            spec = load_rig(path)
+            model = spec.workpiece.model
+            wire = manipulator_wireframe() if model == BUILTIN_MODEL else load_model(model)
+            return inputs_from_rig(spec), wire.vertices
+
+        return cls(
+            frames,
+            kinematics,
+            path,
+            report_root,
+            home_s_mm=home,
+            camera_cov=camera_cov,
+            budget=budget,
+        )
 
     @classmethod
     def for_daemon(cls, config: Config, frames: Callable[[], FrameTap | None]) -> CommissioningEnv:

@@ -154,6 +154,8 @@ class Daemon:
             "freed": self.freed.stats() if self.freed else None,
             "recording": str(self.recorder.current) if self.recorder else None,
             "output_errors": self.output_errors,
+            # the error budget at the current pose (docs/COMMISSIONING.md), None when unknown
+            "overlay_sigma_px": self.commissioning.overlay_sigma_px(self.controller.snapshot()),
         }
 
     async def reload(self) -> list[str]:

@@ -12,6 +12,7 @@ import pytest
 from host.cli import main as cli_main
 from host.commissioning.client import CommissioningPlan, commission
 from host.geometry.transforms import R_to_rotvec, euler_zyx, make_T
+from host.geometry.head import Rig
 from host.rig import load_rig
 from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, sim_daemon
 
@@ -88,9 +89,16 @@ async def test_stop_cancels_the_run_and_the_rig_file_is_untouched(tmp_path: Path
                 break
             await asyncio.sleep(0.05)
             status = await h.request("commissioning_status", job=started["job"])
+        await h.request("clear")
+        s_now = (await h.request("status"))["controller"]["position_mm"] + 150.0
+        pan, tilt = Rig().aim(s_now, [-300.0, -300.0, 300.0])  # look at the workpiece
+        await h.request("head", pan_rad=pan, tilt_rad=tilt)
+        service = (await h.request("status"))["service"]
     assert status["state"] == "cancelled"
     assert status["reason"] == "STOP"
     assert h.rig_path.read_text() == before
+    # the nominal rig file's σ (1 % focal length, 3 mm mounts) predict several pixels
+    assert 1.0 < service["overlay_sigma_px"] < 200.0
 
 
 def local_error(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
