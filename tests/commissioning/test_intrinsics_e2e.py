@@ -11,8 +11,8 @@ import pytest
 
 from host.cli import main as cli_main
 from host.commissioning.client import CommissioningPlan, commission
-from host.geometry.transforms import R_to_rotvec, euler_zyx, make_T
 from host.geometry.head import Rig
+from host.geometry.transforms import R_to_rotvec, euler_zyx, make_T
 from host.rig import load_rig
 from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, sim_daemon
 
