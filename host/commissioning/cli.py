@@ -35,6 +35,19 @@ def add_parsers(subparsers: Any) -> None:
     intr.add_argument("--max-rms", type=float, help="pass threshold, px (default 0.5)")
     intr.add_argument("--min-views", type=int, help="views needed (default 10)")
     intr.set_defaults(handler=run_intrinsics)
+    head = _common(
+        sub.add_parser("head", help="M_cr and the track placement from a surveyed board")
+    )
+    _board_args(head, centre=False)
+    _pose_args(head)
+    head.set_defaults(handler=lambda a: run_posed(a, "calibrate_head"))
+    check = _common(
+        sub.add_parser("check", help="acceptance test: predicted against measured corners")
+    )
+    _board_args(check, centre=False)
+    _pose_args(check)
+    check.add_argument("--max-rms", type=float, help="pass threshold, px (default 1.0)")
+    check.set_defaults(handler=lambda a: run_posed(a, "calibrate_check"))
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -45,11 +58,21 @@ def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return p
 
 
-def _board_args(p: argparse.ArgumentParser) -> None:
+def _pose_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board-pose", required=True, metavar="FILE",
+                   help="the board's surveyed world pose: a JSON 4×4 matrix (mm)")  # fmt: skip
+    p.add_argument("--board-sigma-mm", type=float, default=1.0, help="survey σ of its position")
+    p.add_argument("--board-sigma-mrad", type=float, default=1.0, help="survey σ of its attitude")
+
+
+def _board_args(p: argparse.ArgumentParser, centre: bool = True) -> None:
     base = BoardSpec()
     where = "where the board's centre is in the world, mm (a tape measure is enough)"
-    p.add_argument("--board-centre", type=float, nargs=3, required=True, metavar=("X", "Y", "Z"),
-                   help=where)  # fmt: skip
+    if centre:
+        xyz = ("X", "Y", "Z")
+        p.add_argument(
+            "--board-centre", type=float, nargs=3, required=True, metavar=xyz, help=where
+        )
     p.add_argument("--stations", type=float, nargs="+", metavar="S_MM",
                    help="arc lengths to view from (default: where the trolley is)")  # fmt: skip
     p.add_argument(
@@ -91,6 +114,26 @@ def run_intrinsics(args: argparse.Namespace) -> int:
     req["write"] = not args.no_write
     req["full_distortion"] = args.full_distortion
     return follow(args, "calibrate_intrinsics", req)
+
+
+def run_posed(args: argparse.Namespace, op: str) -> int:
+    """`orbitar calibrate head` / `check`: the board pose from its survey file."""
+    try:
+        with open(args.board_pose, encoding="utf-8") as f:
+            pose = json.load(f)
+        req: dict[str, Any] = {"board_pose": pose, "board": board_from_args(args)}
+    except (OSError, ValueError) as exc:
+        return _fail(f"--board-pose {args.board_pose}: {exc}")
+    req["board_sigma_mm"] = args.board_sigma_mm
+    req["board_sigma_rad"] = args.board_sigma_mrad / 1000.0
+    if args.stations:
+        req["stations_mm"] = list(args.stations)
+    if args.speed is not None:
+        req["speed_mm_s"] = args.speed
+    if getattr(args, "max_rms", None) is not None:
+        req["max_rms_px"] = args.max_rms
+    req["write"] = not args.no_write
+    return follow(args, op, req)
 
 
 def follow(args: argparse.Namespace, op: str, req: dict[str, Any]) -> int:
