@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any, Protocol, TextIO
 if TYPE_CHECKING:  # the simulator is imported only when the command runs
     from hil_sim.links.faults import FaultConfig
     from hil_sim.runner import RealtimeRunner
+    from hil_sim.scenario import Scenario
 
 LINKS = ("pty", "tcp", "xbee", "can")
 DEFAULT_BAUD = 115200
@@ -52,6 +53,8 @@ class SimOptions:
     bit_error_rate: float = 0.0
     latency_ms: float = 0.0
     jitter_ms: float = 0.0
+    rig: str | None = None  # a rig file: the simulated (true) rig; None: the paper's rig
+    tolerances: bool = False  # draw seeded installation tolerances around the rig file
 
 
 class SimOptionsError(ValueError):
@@ -114,6 +117,8 @@ CHECKS: dict[str, Check] = {
     "bit_error_rate": _number(0.0, 1.0),
     "latency_ms": _number(0.0, 10_000.0),
     "jitter_ms": _number(0.0, 10_000.0),
+    "rig": _path,
+    "tolerances": lambda v: None if isinstance(v, bool) else "expected true or false",
 }
 
 
@@ -172,6 +177,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add("--bit-error-rate", type=float, help="probability each bit flips")
     add("--latency-ms", type=float, help="one-way link latency")
     add("--jitter-ms", type=float, help="uniform extra one-way delay up to this")
+    add("--rig", help="rig file (the daemon's schema) to simulate as the true rig")
+    add(
+        "--tolerances",
+        action="store_true",
+        default=None,
+        help="build the rig off its file by seeded installation tolerances (hil_sim.true_rig)",
+    )
     add("--config", help="TOML file with the same options (underscores for dashes)")
 
 
@@ -195,6 +207,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the emulator until SIGINT/SIGTERM; 0 then, 2 for bad options."""
     try:
         options = options_from_args(args)
+        make_scenario(options)  # a bad rig file is a bad option: named now, exit 2
     except SimOptionsError as exc:
         for problem in exc.problems:
             print(f"orbitar sim: {problem}", file=sys.stderr)
@@ -264,16 +277,35 @@ async def serve(options: SimOptions, out: TextIO) -> int:
 
 
 def make_runner(options: SimOptions) -> RealtimeRunner:
-    """The paper's rig with the scenario options, paced at `speed` × real time."""
+    """The rig (the paper's or --rig's, tolerances if asked) paced at `speed` × real time."""
     from hil_sim.runner import RealtimeRunner, Simulation
-    from hil_sim.scenario import ChainConfig, Scenario, TrackConfig
 
-    scenario = Scenario(
-        seed=options.seed,
-        chain=ChainConfig(elongation=options.elongation),
-        track=TrackConfig(reference_marks_mm=options.marks),
-    )
-    return RealtimeRunner(Simulation(scenario), speed=options.speed)
+    return RealtimeRunner(Simulation(make_scenario(options)), speed=options.speed)
+
+
+def make_scenario(options: SimOptions) -> Scenario:
+    """The scenario the options describe; SimOptionsError names a bad rig file."""
+    from hil_sim.rig_scenario import scenario_for_rig
+    from hil_sim.scenario import ChainConfig, Scenario, TrackConfig
+    from hil_sim.true_rig import Tolerances, true_rig
+    from host.rig import RigError, RigSpec, load_rig
+
+    if options.rig is None and not options.tolerances:
+        return Scenario(
+            seed=options.seed,
+            chain=ChainConfig(elongation=options.elongation),
+            track=TrackConfig(reference_marks_mm=options.marks),
+        )
+    try:
+        nominal = RigSpec() if options.rig is None else load_rig(options.rig)
+    except RigError as exc:
+        raise SimOptionsError([f"rig: {p}" for p in exc.problems]) from None
+    tol = Tolerances() if options.tolerances else Tolerances.off()
+    truth = true_rig(nominal, options.seed, tol)
+    sc = scenario_for_rig(truth, options.seed, options.elongation)
+    if options.marks:
+        sc.track.reference_marks_mm = options.marks
+    return sc
 
 
 def fault_config(options: SimOptions, salt: int) -> FaultConfig:

@@ -32,7 +32,7 @@ class Truth:
 
     time_s: float
     s_mm: float  # unwrapped arc length of the trolley
-    s_wrapped_mm: float  # arc length modulo the runway length, for the track geometry
+    s_wrapped_mm: float  # arc length on the track geometry (modulo the length on a loop)
     sprocket_rad: float
     lag_steps: float  # commanded minus actual sprocket angle, in microsteps
     tooth_skips: int  # net teeth the chain jumped (positive: trolley ahead of the sprocket)
@@ -205,7 +205,7 @@ class Plant:
         return Truth(
             self.time_s,
             self.s_mm,
-            self.s_mm % self.sc.track.length_mm,
+            self.s_mm % self.sc.track.length_mm if self.sc.track.closed else self.s_mm,
             self.theta,
             (self.theta_cmd - self.theta) / self.step_rad,
             self.tooth_skips,

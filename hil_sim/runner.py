@@ -84,10 +84,10 @@ class Simulation:
         return self.plant.truth()
 
     def trolley_pose(self) -> FloatArray:
-        """True T_w_t of the trolley now, on the paper's runway (host.geometry.track)."""
+        """True T_w_t of the trolley now, on the scenario's track (host.geometry.track)."""
         if self._track is None:
-            self._track = runway()
-        return self._track.pose(self.plant.s_mm)
+            self._track = self.scenario.track.path or runway()
+        return self._track.pose(self.plant.truth().s_wrapped_mm)
 
     @property
     def time_s(self) -> float:

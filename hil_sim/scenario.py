@@ -1,9 +1,11 @@
 """Scenario configuration: the simulated rig, with the paper's rig as the defaults.
 
 Lengths in mm, angles in rad, time in s, as everywhere in Orbitar; names carry other units.
-The track position `s_mm` is the trolley's unwrapped arc length along the runway: the cable
-carrier lets it go round the closed loop only once, so the hard limit switches sit at the two
-ends of that unwrapped travel.
+The track position `s_mm` is the trolley's unwrapped arc length along the track: on a closed
+loop the cable carrier lets it go round only once, so the hard limit switches sit at the two
+ends of that unwrapped travel; on an open track they sit near its two ends. The track's shape
+is `TrackConfig.path` (host.geometry.track, the one track module; None: the paper's runway);
+`hil_sim.rig_scenario` builds a whole scenario from a (true) rig description.
 """
 
 from __future__ import annotations
@@ -11,6 +13,10 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from host.geometry.track import Track
 
 # Paper §5: 6 m × 3 m rounded rectangle, corner radius 1 m.
 RUNWAY_LENGTH_MM = 2 * (6000 - 2000) + 2 * (3000 - 2000) + 2 * math.pi * 1000
@@ -56,6 +62,8 @@ class TrackConfig:
     """Where the trolley is and what switches it meets along the unwrapped arc length."""
 
     length_mm: float = RUNWAY_LENGTH_MM
+    closed: bool = True  # a loop: the geometry wraps s modulo length_mm; open: s as it is
+    path: Track | None = None  # the true track geometry; None: the paper's runway
     start_s_mm: float = 500.0
     home_s_mm: float = 150.0
     home_width_mm: float = 10.0

@@ -11,6 +11,7 @@ from typing import Any
 from host.commissioning import cli as commissioning_cli
 from host.control import cli_commands
 from host.demo import run as demo_run
+from host.rig import cli as rig_cli
 
 
 def _version() -> str:
@@ -29,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo_run.add_parser(sub)
     cli_commands.add_parsers(sub)
     commissioning_cli.add_parsers(sub)
+    rig_cli.add_parser(sub)
     _add_sim_parser(sub)
     return parser
 

@@ -21,29 +21,17 @@ from typing import Any
 from host.config_fields import (
     ConfigError,
     parse_destination,
-    parse_matrix4,
     parse_mode,
-    parse_number,
     parse_regex,
     parse_source,
     parse_vector3,
     spec,
 )
-from host.config_rangefinder import SURFACES_EXAMPLE, RangefinderConfig, surface_problems
+from host.config_rig import RigConfig
 
 LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
-SEGMENT_KINDS = ("straight", "arc")
-TRACK_PRESETS = ("runway", "custom")
 XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
-
-# M_cr of the paper's eq. 14: the camera in the head frame, millimetres.
-PAPER_M_CR = (
-    (0.9907, 0.1353, -0.0064, 50.843),
-    (-0.1396, 0.9915, 0.0093, 47.094),
-    (0.0083, -0.0085, 0.9990, 76.177),
-    (0.0, 0.0, 0.0, 1.0),
-)
 
 
 @dataclass(frozen=True)
@@ -76,157 +64,11 @@ class LinkConfig:
 
 
 @dataclass(frozen=True)
-class SegmentConfig:
-    """One piece of track: a straight of `length_mm` or an arc of `radius_mm` turning `angle`."""
-
-    kind: str = spec(
-        "straight",
-        choices=SEGMENT_KINDS,
-        doc="serial (a UART), xbee (XBee API frames over a UART) or can (python-can)",
-    )
-    length_mm: float = spec(0.0, lo=0.0, hi=1e6, doc="length of a straight")
-    radius_mm: float = spec(0.0, lo=0.0, hi=1e6, doc="radius of an arc")
-    angle_rad: float = spec(
-        0.0,
-        key="angle_deg",
-        deg=True,
-        lo=-360.0,
-        hi=360.0,
-        doc="turn of an arc, positive counter-clockwise",
-    )
-
-
-def runway_segments(
-    long_mm: float = 6000.0, wide_mm: float = 3000.0, radius_mm: float = 1000.0
-) -> tuple[SegmentConfig, ...]:
-    """The paper's rounded-rectangle runway as straights and quarter arcs (counter-clockwise)."""
-    quarter = SegmentConfig("arc", 0.0, radius_mm, math.pi / 2)
-    long_side = SegmentConfig("straight", long_mm - 2 * radius_mm)
-    short_side = SegmentConfig("straight", wide_mm - 2 * radius_mm)
-    return (long_side, quarter, short_side, quarter) * 2
-
-
-@dataclass(frozen=True)
-class TrackConfig:
-    """The chain track; `segments` is filled from the preset unless the preset is "custom"."""
-
-    preset: str = spec(
-        "runway",
-        choices=TRACK_PRESETS,
-        doc='track shape: "runway" (the paper: 6 m x 3 m, corner radius 1 m) or "custom"',
-    )
-    segments: tuple[SegmentConfig, ...] = field(default_factory=runway_segments)
-    height_mm: float = spec(4000.0, lo=0.0, hi=100_000.0, doc="track height above the floor")
-    home_s_mm: float = spec(
-        0.0,
-        lo=0.0,
-        hi=1e6,
-        doc="track arc length of the controller's zero (home switch), from the installation survey",
-    )
-    reference_marks_mm: tuple[float, ...] = spec(
-        (),
-        parse=parse_number,
-        each=True,
-        doc="surveyed arc lengths of the reference marks, ascending (empty: no drift correction)",
-    )
-
-    @property
-    def length_mm(self) -> float:
-        """Total arc length of the segments."""
-        return sum(
-            s.length_mm if s.kind == "straight" else s.radius_mm * abs(s.angle_rad)
-            for s in self.segments
-        )
-
-
-@dataclass(frozen=True)
-class HeadConfig:
-    """The pan/tilt head: camera-in-head transform M_cr and the travel limits."""
-
-    m_cr: tuple[tuple[float, ...], ...] = spec(
-        PAPER_M_CR,
-        parse=parse_matrix4,
-        doc="camera-in-head transform M_cr (paper eq. 14), rows, millimetres",
-    )
-    pan_min_rad: float = spec(
-        -math.pi,
-        key="pan_min_deg",
-        deg=True,
-        lo=-360.0,
-        hi=360.0,
-        doc="lowest pan the head may be sent to",
-    )
-    pan_max_rad: float = spec(
-        math.pi,
-        key="pan_max_deg",
-        deg=True,
-        lo=-360.0,
-        hi=360.0,
-        doc="highest pan the head may be sent to",
-    )
-    tilt_min_rad: float = spec(
-        -math.pi / 2,
-        key="tilt_min_deg",
-        deg=True,
-        lo=-90.0,
-        hi=90.0,
-        doc="lowest tilt the head may be sent to",
-    )
-    tilt_max_rad: float = spec(
-        math.radians(30.0),
-        key="tilt_max_deg",
-        deg=True,
-        lo=-90.0,
-        hi=90.0,
-        doc="highest tilt the head may be sent to",
-    )
-
-
-@dataclass(frozen=True)
 class CameraConfig:
-    """The camera: where frames come from and the intrinsics of Table 1."""
+    """Where frames come from (resolution, rate and intrinsics are the rig file's)."""
 
     source: str | int = spec(
         "sim", parse=parse_source, doc='"sim", a device index, a video file or a URL'
-    )
-    width: int = spec(640, lo=1, hi=16384, doc="frame width, pixels")
-    height: int = spec(480, lo=1, hi=16384, doc="frame height, pixels")
-    fps: float = spec(30.0, lo=0.1, hi=1000.0, doc="frames per second")
-    fx: float = spec(3676.462, lo=1e-6, hi=1e6, doc="focal length along x, pixels (Table 1)")
-    fy: float = spec(3676.478, lo=1e-6, hi=1e6, doc="focal length along y, pixels (Table 1)")
-    skew: float = spec(0.263, lo=-1e6, hi=1e6, doc="skew r of the intrinsic matrix (Table 1)")
-    u0: float = spec(645.342, lo=-1e5, hi=1e5, doc="principal point u, pixels")
-    v0: float = spec(508.259, lo=-1e5, hi=1e5, doc="principal point v, pixels")
-    k1: float = spec(1.30, lo=-1e3, hi=1e3, doc="radial distortion k1")
-    k2: float = spec(1.88, lo=-1e3, hi=1e3, doc="radial distortion k2")
-    p1: float = spec(0.0, lo=-1e3, hi=1e3, doc="tangential distortion p1")
-    p2: float = spec(0.0, lo=-1e3, hi=1e3, doc="tangential distortion p2")
-    k3: float = spec(0.0, lo=-1e3, hi=1e3, doc="radial distortion k3")
-    exposure_latency_ms: float = spec(
-        0.0,
-        lo=-1000.0,
-        hi=1000.0,
-        doc="time from the exposure midpoint to the frame's host timestamp",
-    )
-
-
-@dataclass(frozen=True)
-class ModelConfig:
-    """The workpiece model projected into the frames."""
-
-    path: str = spec("builtin:manipulator", doc='workpiece model file or "builtin:manipulator"')
-    position_mm: tuple[float, float, float] = spec(
-        (0.0, 0.0, 0.0),
-        parse=parse_vector3,
-        doc="x, y, z of the workpiece frame's origin in the world (track) frame",
-    )
-    yaw_rad: float = spec(
-        0.0,
-        key="yaw_deg",
-        deg=True,
-        lo=-360.0,
-        hi=360.0,
-        doc="workpiece frame turned about world z by this angle (counter-clockwise from above)",
     )
 
 
@@ -322,11 +164,8 @@ class Config:
     """The whole configuration."""
 
     link: LinkConfig = field(default_factory=LinkConfig)
-    track: TrackConfig = field(default_factory=TrackConfig)
-    head: HeadConfig = field(default_factory=HeadConfig)
-    rangefinder: RangefinderConfig = field(default_factory=RangefinderConfig)
+    rig: RigConfig = field(default_factory=RigConfig)
     camera: CameraConfig = field(default_factory=CameraConfig)
-    model: ModelConfig = field(default_factory=ModelConfig)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
@@ -453,54 +292,9 @@ def _check_type(hint: Any, value: Any) -> Any:
 def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
     """Rules that span several keys."""
     errors = []
-    head, track = config.head, config.track
-    if head.pan_min_rad >= head.pan_max_rad:
-        errors.append("head.pan_min_deg: must be below head.pan_max_deg")
-    if head.tilt_min_rad >= head.tilt_max_rad:
-        errors.append("head.tilt_min_deg: must be below head.tilt_max_deg")
-    has_segments = "segments" in table.get("track", {})
-    if track.preset == "custom" and not has_segments:
-        errors.append('track.segments: required when track.preset = "custom"')
-    if track.preset != "custom" and has_segments:
-        errors.append(f'track.segments: given with preset {track.preset!r}; use "custom"')
-    for i, seg in enumerate(track.segments):
-        errors += _segment_problems(i, seg)
-    errors += _track_position_problems(track)
-    for i, surface in enumerate(config.rangefinder.surfaces):
-        errors += surface_problems(i, surface)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
     return errors
-
-
-def _track_position_problems(track: TrackConfig) -> list[str]:
-    """Home and marks lie on the track; marks strictly ascending (each one is a distinct place)."""
-    errors = []
-    length = track.length_mm
-    if track.home_s_mm > length:
-        errors.append(f"track.home_s_mm = {track.home_s_mm}: beyond the track's {length:.1f} mm")
-    marks = track.reference_marks_mm
-    for i, mark in enumerate(marks):
-        if not 0.0 <= mark <= length:
-            errors.append(
-                f"track.reference_marks_mm[{i}] = {mark}: outside the track [0, {length:.1f}] mm"
-            )
-        if i and mark <= marks[i - 1]:
-            errors.append(
-                f"track.reference_marks_mm[{i}] = {mark}: must be above the previous mark "
-                f"{marks[i - 1]} (list the marks in ascending order)"
-            )
-    return errors
-
-
-def _segment_problems(index: int, seg: SegmentConfig) -> list[str]:
-    """A straight needs a length; an arc needs a radius and an angle."""
-    key = f"track.segments[{index}]"
-    if seg.kind == "straight" and seg.length_mm <= 0:
-        return [f"{key}.length_mm = {seg.length_mm}: a straight needs a positive length"]
-    if seg.kind == "arc" and (seg.radius_mm <= 0 or seg.angle_rad == 0):
-        return [f"{key}: an arc needs radius_mm > 0 and angle_deg != 0"]
-    return []
 
 
 def default_config_text() -> str:
@@ -529,15 +323,7 @@ def _emit_section(obj: Any, prefix: str, lines: list[str]) -> None:
         _emit_section(value, name, lines)
 
 
-_SEGMENTS_EXAMPLE = """# With preset = "custom", list the pieces of track in order, e.g.:
-# [[track.segments]]
-# kind = "straight"
-# length_mm = 4000.0
-# [[track.segments]]
-# kind = "arc"
-# radius_mm = 1000.0
-# angle_deg = 90.0"""
-_TABLE_ARRAY_EXAMPLES = {"segments": _SEGMENTS_EXAMPLE, "surfaces": SURFACES_EXAMPLE}
+_TABLE_ARRAY_EXAMPLES: dict[str, str] = {}
 
 
 def _toml_value(fld: dataclasses.Field[Any], value: Any) -> str:

@@ -10,7 +10,7 @@ writes nothing. Reports go to `report_root`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,7 +24,8 @@ from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import load_model, manipulator_wireframe
 from host.geometry.transforms import FloatArray
-from host.rig import build_camera, build_kinematics, load_rig
+from host.rig import RigSpec, build_camera, build_kinematics, load_rig
+from host.rig.store import current_rig
 
 if TYPE_CHECKING:
     from host.config import Config
@@ -33,6 +34,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_REPORT_ROOT = Path("orbitar-commissioning")
 BUILTIN_MODEL = "builtin:manipulator"
+REPORT_DIR = "commissioning"  # beside the rig file
 
 
 def _no_frames() -> FrameTap | None:
@@ -69,6 +71,8 @@ class CommissioningEnv:
     camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
     # the error budget's inputs and the model points it is evaluated on (None: no budget)
     budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
+    # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
+    after_write: Callable[[], Awaitable[Any]] | None = None
 
     def overlay_sigma_px(self, snapshot: Mapping[str, Any]) -> float | None:
         """Predicted overlay σ at the controller's current pose; None when unknown (logged)."""
@@ -88,48 +92,49 @@ class CommissioningEnv:
         return round(b.sigma_px, 3) if np.isfinite(b.sigma_px) else None
 
     @classmethod
-    def for_rig_file(
-        cls, path: Path, frames: Callable[[], FrameTap | None], report_root: Path
+    def for_rig(
+        cls,
+        load: Callable[[], RigSpec],
+        path: Path | None,
+        frames: Callable[[], FrameTap | None],
+        report_root: Path,
     ) -> CommissioningEnv:
-        """An env reading its rig fresh from `path` for every run (runs build on each other)."""
+        """An env reading its rig through `load` for every run (so runs build on each other)."""
 
         def kinematics() -> tuple[Rig, CameraModel]:
-            spec = load_rig(path)
+            spec = load()
             return build_kinematics(spec), build_camera(spec)
 
         def home() -> float:
-            return float(load_rig(path).track.home.value)
+            return float(load().track.home.value)
 
         def camera_cov() -> FloatArray:
-            intr = load_rig(path).camera.intrinsics
+            intr = load().camera.intrinsics
             if intr.covariance is not None:
                 return np.array(intr.covariance, dtype=np.float64)
             return np.diag(np.square(intr.sigma))
 
         def budget() -> tuple[BudgetInputs, FloatArray]:
-            spec = load_rig(path)
+            spec = load()
             model = spec.workpiece.model
             wire = manipulator_wireframe() if model == BUILTIN_MODEL else load_model(model)
             return inputs_from_rig(spec), wire.vertices
 
-        return cls(
-            frames,
-            kinematics,
-            path,
-            report_root,
-            home_s_mm=home,
-            camera_cov=camera_cov,
-            budget=budget,
-        )
+        return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov,
+                   budget=budget)  # fmt: skip
+
+    @classmethod
+    def for_rig_file(
+        cls, path: Path, frames: Callable[[], FrameTap | None], report_root: Path
+    ) -> CommissioningEnv:
+        """An env on a rig file, read fresh for every run."""
+        return cls.for_rig(lambda: load_rig(path), path, frames, report_root)
 
     @classmethod
     def for_daemon(cls, config: Config, frames: Callable[[], FrameTap | None]) -> CommissioningEnv:
-        """The daemon's default: the rig of its configuration, no rig file to write yet."""
-
-        def kinematics() -> tuple[Rig, CameraModel]:
-            from host.service.wiring import build_camera as camera_of
-            from host.service.wiring import build_rig
-
-            return build_rig(config), camera_of(config)
-
-        return cls(frames, kinematics, home_s_mm=lambda: float(config.track.home_s_mm))
+        """The daemon's: its `[rig] path` (written by passing runs; reports beside it), or the
+        paper's nominal rig when the path is empty (runs report, nothing is written)."""
+        if not config.rig.path:
+            return cls.for_rig(RigSpec, None, frames, DEFAULT_REPORT_ROOT)
+        path = Path(config.rig.path)
+        return cls.for_rig(lambda: current_rig(path), path, frames, path.parent / REPORT_DIR)

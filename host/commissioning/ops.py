@@ -166,6 +166,8 @@ def _start_capture_run(
             progress["phase"] = "writing"
             await asyncio.to_thread(update_rig, env.rig_path, updates, f"calibrate {kind}")
             written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
         progress["phase"] = "done"
         return {**summary, "report": report, "written": written, "rig_file": _path(env)}
 

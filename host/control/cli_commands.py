@@ -216,8 +216,11 @@ def _render(view: dict[str, Any], out: TextIO) -> None:
 
 def run_config_check(args: argparse.Namespace) -> int:
     """`orbitar config check PATH`."""
+    from host.rig import current_rig
+
     try:
-        load_config(args.path)
+        config = load_config(args.path)
+        current_rig(config.rig.path)  # the rig file it names must load too
     except ConfigError as exc:
         print(f"{args.path}: {exc}", file=sys.stderr)
         return 2

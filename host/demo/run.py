@@ -8,20 +8,24 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import sys
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from hil_sim.scenario import RangefinderConfig, Scenario, TrackConfig
-from hil_sim.surveyed_range import surveyed_target
+from hil_sim.camera import FrameClock
+from hil_sim.true_rig import parameter_errors
+from host.demo.daemon_phase import RunningDaemon, running_daemon
 from host.demo.experiments import (
     Bench,
     MovingRobot,
     Plan,
+    Truth,
     drift_experiment,
     moving_experiment,
     start_host,
@@ -31,25 +35,16 @@ from host.demo.experiments import (
 from host.demo.feeds import TrackFeed
 from host.demo.propagation_report import propagation_results
 from host.demo.report_pages import write_report
+from host.demo.rigs import DemoRigs, model_of
 from host.demo.world import SimCameraSource, SimWorld
 from host.frames.loop import FrameLoop
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
-from host.geometry.camera import CameraModel
-from host.geometry.head import Rig
-from host.geometry.model import manipulator_wireframe
-from host.geometry.rangefinder import RangeScene, hall_walls
-from host.geometry.transforms import make_T
 from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
+from host.rig import RigError, build_scene, load_rig, save_rig
+from host.rig.schema import SURVEY_SIGMA_MM
 
 BAR_WIDTH = 30
-START_S_MM = 500.0  # where the trolley stands at power-on (the scenario's default)
-MARK_SPACING_MM = 1000.0  # reference marks along the track (magnets under a hall sensor)
-FIRST_MARK_MM = 400.0  # just past the home switch, so the chain scale is learnt early
-WORKPIECE_W = (-300.0, -300.0, 0.0)  # the robot's base on the floor, inside the runway
-# A 12 m × 9 m hall around the runway (6 m × 3 m, centred on the world origin): its walls are
-# surveyed, so a rangefinder reading of one is an absolute reference of the track position.
-HALL = RangeScene(hall_walls(x_mm=(-6000.0, 6000.0), y_mm=(-4500.0, 4500.0)))
 
 
 @dataclass
@@ -107,56 +102,111 @@ class LoopLag:
             self.max_ms = max(self.max_ms, (loop.time() - t - self.period_s) * 1e3)
 
 
-def scenario(seed: int, rig: Rig) -> Scenario:
-    """The paper's rig in a hall with surveyed walls, reference marks every metre."""
-    marks = tuple(np.arange(FIRST_MARK_MM, 16_200.0, MARK_SPACING_MM).tolist())
-    return Scenario(
-        seed=seed,
-        track=TrackConfig(reference_marks_mm=marks),
-        rangefinder=RangefinderConfig(target=surveyed_target(rig, HALL)),
-    )
+Commissioner = Callable[[RunningDaemon, DemoRigs, SimWorld], Awaitable[dict[str, Any]]]
+"""Commissioning through the running daemon: writes the host's rig file, returns its report."""
 
 
-async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict[str, Any]:
-    """Run everything; return the results (also written to out_dir)."""
-    plan = Plan.quick() if quick else Plan()
-    rig, camera, model = Rig(), CameraModel(), manipulator_wireframe()
-    sc = scenario(seed, rig)
+async def run_demo(
+    link: str,
+    quick: bool,
+    out_dir: Path,
+    seed: int = 1,
+    rig_path: Path | None = None,
+    tolerances: bool = False,
+    commission: Commissioner | None = None,
+    plan: Plan | None = None,
+) -> dict[str, Any]:
+    """Run everything; return the results (also written to out_dir).
+
+    The host starts from the rig description (`rig_path`, default the paper's rig in a surveyed
+    hall); the simulator runs the true rig: the description itself, or with `tolerances` the
+    description off by seeded installation tolerances. With `commission`, the daemon runs on the
+    simulated rig first and the commissioning writes OUT/rig.toml through its control socket;
+    the experiments then use that file's (calibrated) rig only.
+    """
+    rigs = DemoRigs.make(rig_path, seed, tolerances)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    host_rig_file = out_dir / "rig.toml"  # what the host knows; commissioning writes here
+    save_rig(rigs.host, host_rig_file, "the demo's host rig (nominal)")
+    sc = rigs.scenario(seed)
     world = SimWorld(sc, link)
-    static_pose = make_T(np.eye(3), np.array(WORKPIECE_W))
+    results: dict[str, Any] = {"link": link, "quick": quick, "seed": seed, "rig": rigs.host.name}
+    results["mode"] = {"tolerances": tolerances, "commissioned": False}
+    await world.start()
+    try:
+        if commission is not None:
+            async with running_daemon(world, host_rig_file, out_dir / "daemon") as daemon:
+                results["commissioning"] = await commission(daemon, rigs, world)
+            rigs = dataclasses.replace(rigs, host=load_rig(host_rig_file))
+            results["mode"]["commissioned"] = True
+        base = plan or (Plan.quick() if quick else Plan())
+        fitted = base.fitted(rigs.start_s_mm(), rigs.host.track.home.value, rigs.travel_mm())
+        snapshots = await _experiments(rigs, world, fitted, link, seed, results)
+    finally:
+        await world.stop()
+    camera = rigs.host_camera()
+    results["calibration"] = parameter_errors(rigs.host, rigs.truth)
+    results["propagation"] = propagation_results(camera, samples=20_000 if quick else 100_000)
+    results["report"] = str(write_report(out_dir, results, snapshots, sc))
+    return results
+
+
+async def _experiments(
+    rigs: DemoRigs, world: SimWorld, plan: Plan, link: str, seed: int, results: dict[str, Any]
+) -> list[tuple[str, Any]]:
+    """Static, moving and drift experiments on the host's rig; results in place; snapshots."""
+    start_s = rigs.start_s_mm()
+    rig, camera, model = rigs.host_kinematics(), rigs.host_camera(), model_of(rigs.host)
+    host_pose, true_pose = rigs.host_workpiece(), rigs.true_workpiece()
     robot = MovingRobot(
-        make_T(np.eye(3), np.array(WORKPIECE_W)),
-        rig.track.pose(START_S_MM)[:3, 0],
-        plan.moving_speed_mm_s,
-        plan.moving_length_mm,
+        host_pose, rig.track.pose(start_s)[:3, 0], plan.moving_speed_mm_s, plan.moving_length_mm
     )
     phase = {"static": True}
 
     def workpiece(t_ns: int) -> np.ndarray:
-        return static_pose if phase["static"] else robot.pose_at_ns(t_ns)
+        return host_pose if phase["static"] else robot.pose_at_ns(t_ns)
+
+    def true_workpiece(t_ns: int) -> np.ndarray:
+        return true_pose if phase["static"] else robot.pose_at_ns(t_ns, true_pose)
 
     progress = Progress({"connect": 1, "static": 5, "moving": 2, "drift": 5})
-    await world.start()
     ctrl = Controller(world.host_transport())
-    ranger = RangeFixer(rig, HALL, RangeFixConfig(noise_mm=sc.rangefinder.noise_mm))
-    feed = TrackFeed(sc.track.reference_marks_mm, sc.chain.pitch_mm, ranger)
+    scene = build_scene(rigs.host)
+    rf = rigs.host.rangefinder
+    ranger = None if scene is None else RangeFixer(rig, scene, RangeFixConfig(noise_mm=rf.noise_mm))
+    feed = TrackFeed(rigs.host.track.marks.s_mm, world.sim.scenario.chain.pitch_mm, ranger)
     ctrl.add_sink(feed)
-    bench = Bench(ctrl, rig, camera, model, feed, workpiece)
-    source = SimCameraSource(world, rig, camera, model, workpiece)
+    bench = Bench(
+        ctrl,
+        rig,
+        camera,
+        model,
+        feed,
+        workpiece,
+        Truth(rigs.true_kinematics(), rigs.true_camera()),
+        home_switch_s_mm=rigs.host.track.home.value,
+        latency_ns=round(rigs.host.camera.latency.value * 1e6),
+        home_survey_sigma_mm=SURVEY_SIGMA_MM if rigs.tolerances else 0.0,
+        survey_seed=seed,
+    )
+    clock = _frame_clock(rigs, seed)
+    source = SimCameraSource(
+        world, bench.truth.rig, bench.truth.camera, model, true_workpiece,
+        fps=rigs.truth.camera.fps, delivery_s=clock.delivery_s, clock=clock,
+    )  # fmt: skip
     loop = FrameLoop(source, bench.process(), [bench.collector])
     frames = asyncio.create_task(loop.run())
     lag = LoopLag()
     lag_task = asyncio.create_task(lag.run())
-    results: dict[str, Any] = {"link": link, "quick": quick, "seed": seed}
     try:
         progress("connect: handshake and homing", 0.0)
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
         await start_host(bench, link)
         feed.set_home(await survey_home(bench, world))
-        results["static"] = await static_experiment(bench, plan, START_S_MM, progress)
+        results["static"] = await static_experiment(bench, plan, start_s, progress)
         phase["static"] = False
-        results["moving"] = await moving_experiment(bench, plan, START_S_MM, robot, progress)
+        results["moving"] = await moving_experiment(bench, plan, start_s, robot, progress)
         source.render = False  # the loop is scored on poses; rendering would only cost frames
         results["drift"] = await drift_experiment(bench, world, plan, progress)
         results["link_stats"] = _plain(ctrl.session.stats)
@@ -175,11 +225,15 @@ async def run_demo(link: str, quick: bool, out_dir: Path, seed: int = 1) -> dict
         with contextlib.suppress(Exception):
             await asyncio.wait_for(frames, 10.0)
         await ctrl.close()
-        await world.stop()
         progress.finish()
-    results["propagation"] = propagation_results(camera, samples=20_000 if quick else 100_000)
-    results["report"] = str(write_report(out_dir, results, bench.snapshots, sc))
-    return results
+    return bench.snapshots
+
+
+def _frame_clock(rigs: DemoRigs, seed: int) -> FrameClock:
+    """Exposure stamps without tolerances; with them, the true camera's delivery stamps."""
+    if not rigs.tolerances or rigs.truth.camera.trigger:
+        return FrameClock(triggered=True)
+    return FrameClock(delivery_s=rigs.truth.camera.latency.value / 1e3, seed=seed)
 
 
 def _plain(stats: object) -> dict[str, Any]:
@@ -206,6 +260,19 @@ def add_parser(subparsers: Any) -> None:
         help="report directory (default: ./orbitar-report)",
     )
     demo.add_argument("--seed", type=int, default=1, help="simulator seed")
+    demo.add_argument(
+        "--rig",
+        type=Path,
+        default=None,
+        help="rig file to simulate (default: the paper's rig in a surveyed hall)",
+    )
+    demo.add_argument(
+        "--tolerances",
+        choices=("off", "on"),
+        default="off",
+        help="on: the simulated rig is off its description by seeded installation tolerances "
+        "and the host starts from the description only (off: the host is handed the truth)",
+    )
     demo.set_defaults(handler=main)
 
 
@@ -213,8 +280,15 @@ def main(args: Any) -> int:
     """Run the demo and print the summary and the report's path."""
     from host.demo.report_pages import summary_text
 
+    tolerances = args.tolerances == "on"
     try:
-        results = asyncio.run(run_demo(args.link, args.quick, args.out, args.seed))
+        results = asyncio.run(
+            run_demo(args.link, args.quick, args.out, args.seed, args.rig, tolerances)
+        )
+    except RigError as exc:
+        for problem in exc.problems:
+            print(f"orbitar demo: {problem}", file=sys.stderr)
+        return 2
     except (LinkError, MotionFailed, TimeoutError) as exc:
         print(f"orbitar demo: the run stopped: {type(exc).__name__}: {exc}", file=sys.stderr)
         return 1

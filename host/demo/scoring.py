@@ -47,11 +47,17 @@ def probe_error(
     s_true_mm: float,
     camera: CameraModel,
     depth_mm: float = PROBE_DEPTH_MM,
+    true_camera: CameraModel | None = None,
 ) -> Score:
-    """Overlay error of a point on the true optical axis at depth_mm, seen from the estimate."""
+    """Overlay error of a point on the true optical axis at depth_mm, seen from the estimate.
+
+    The point is where the true lens shows it (`true_camera`, default `camera`); the overlay
+    draws it where the host's camera model and pose put it.
+    """
+    truth_cam = camera if true_camera is None else true_camera
     on_axis_c = np.array([[0.0, 0.0, depth_mm]])
     point_w = transform_points(T_w_c_true, on_axis_c)
-    uv_true, _ = camera.project(on_axis_c)
+    uv_true, _ = truth_cam.project(on_axis_c)
     uv_est, valid = camera.project(transform_points(invert_T(T_w_c_est), point_w))
     px = float(np.linalg.norm(uv_est[0] - uv_true[0])) if bool(valid[0]) else math.inf
     return Score(s_true_mm, px, px * depth_mm / camera.fx)
@@ -60,8 +66,8 @@ def probe_error(
 def aimed_errors(
     regs: tuple[Registration, ...],
     truth: SceneTruth,
-    rig: Rig,
-    camera: CameraModel,
+    host: tuple[Rig, CameraModel],
+    true: tuple[Rig, CameraModel],
     target_w: FloatArray,
 ) -> list[Score]:
     """Each registration's error as overlay error at 3 m, were the camera aimed at target_w.
@@ -69,10 +75,12 @@ def aimed_errors(
     Where the head happens to point changes which pose errors show: a track-position error is
     invisible along the optical axis. Users look at the workpiece, so the registered joint
     values (track position, and the head's reading errors) are carried over to a camera turned
-    toward it from the true position, and scored there.
+    toward it from the true position, and scored there: the estimate through the host's rig and
+    lens, the truth through the simulator's.
     """
-    pan, tilt = rig.aim(truth.s_mm, target_w)
-    T_true = rig.T_w_c(truth.s_mm, pan, tilt)
+    (rig, camera), (true_rig, true_camera) = host, true
+    pan, tilt = true_rig.aim(truth.s_mm, target_w)
+    T_true = true_rig.T_w_c(truth.s_mm, pan, tilt)
     return [
         probe_error(
             rig.T_w_c(
@@ -81,6 +89,7 @@ def aimed_errors(
             T_true,
             truth.s_mm,
             camera,
+            true_camera=true_camera,
         )
         for reg in regs
     ]

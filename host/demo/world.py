@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from hil_sim.camera import SyntheticCamera
+from hil_sim.camera import FrameClock, SyntheticCamera
 from hil_sim.links.can_node import VirtualCanNode
 from hil_sim.links.endpoint import SimPortEndpoint
 from hil_sim.links.pty_uart import PtyUart
@@ -35,8 +35,10 @@ FloatArray = NDArray[np.float64]
 LINKS = ("pty", "xbee", "can")
 SERIAL_BAUD = 115200
 # A camera hands a frame over after readout and transfer, not at exposure: for the Table 1
-# camera's 1280×1024 at 30 fps, about 20 ms. The frame keeps its exposure stamp.
+# camera's 1280×1024 at 30 fps, about 20 ms. What the frame is stamped with is the FrameClock's
+# business: the exposure (a triggered camera, and the demo without tolerances) or the delivery.
 CAMERA_DELIVERY_S = 0.020
+EXPOSURE_STAMPS = FrameClock(triggered=True)
 
 
 class _Emulator(Protocol):
@@ -93,6 +95,16 @@ class SimWorld:
             self._emulator = None
         self.runner.stop()
 
+    @property
+    def emulator(self) -> object:
+        """The running link emulator (PtyUart, XBeeModule or VirtualCanNode), None if stopped."""
+        return self._emulator
+
+    @property
+    def can_channel(self) -> str:
+        """The python-can virtual channel of the CAN link."""
+        return self._can_channel
+
     def host_transport(self) -> Transport:
         """The daemon's transport for this link, configured as on a real rig."""
         emu = self._emulator
@@ -113,7 +125,7 @@ class SimWorld:
 
 
 class SimCameraSource:
-    """The synthetic camera: renders the true scene at the plant's current true time."""
+    """The synthetic camera: renders the true scene (true rig, true lens) at the plant's time."""
 
     def __init__(
         self,
@@ -126,6 +138,7 @@ class SimCameraSource:
         render: bool = True,
         seed: int = 7,
         delivery_s: float = CAMERA_DELIVERY_S,
+        clock: FrameClock = EXPOSURE_STAMPS,
     ) -> None:
         self.world = world
         self.rig = rig
@@ -133,6 +146,7 @@ class SimCameraSource:
         self.workpiece = workpiece
         self.period_s = 1.0 / fps
         self.delivery_s = delivery_s
+        self.clock = clock
         self.render = render
         self._cam = SyntheticCamera(camera, seed=seed)
         self._blank = np.zeros((2, 2, 3), np.uint8)
@@ -153,9 +167,10 @@ class SimCameraSource:
             return None
         truth = self.world.with_truth(lambda sim: sim.truth())
         deliver_at = time.monotonic() + self.delivery_s
-        stamp = self.world.host_time_ns(truth.time_s)
+        exposure_ns = self.world.host_time_ns(truth.time_s)
+        stamp = self.clock.stamp_ns(exposure_ns)
         T_w_c = self.rig.T_w_c(truth.s_wrapped_mm, truth.pan_rad, truth.tilt_rad)
-        T_w_p = self.workpiece(stamp)
+        T_w_p = self.workpiece(exposure_ns)
         image = self._blank
         if self.render:
             image = self._cam.render_scene(T_w_c, self.model, T_w_p).image

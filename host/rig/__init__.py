@@ -1,7 +1,8 @@
 """The rig description (one schema, one file): read, validated, written atomically with backups.
 
 Public API (used by the daemon, `orbitar sim --rig`, the demo and the commissioning commands):
-- `load_rig(path)`, `loads_rig(text)`, `rig_from_dict(table)` → `RigSpec`; `RigError` names keys.
+- `load_rig(path)`, `loads_rig(text)`, `rig_from_dict(table)` → `RigSpec`; `RigError` names keys;
+  `current_rig(path)` for the daemon (reread when the file changed; "" is the paper's rig).
 - `dumps_rig(spec)`, `save_rig(spec, path)` (atomic, keeps `*.bak`), `backups(path)`.
 - `update_rig(path, {"head.m_cr": Pose6(...), ...})`, `with_updates(spec, updates)`: replace
   calibrated blocks (each with σ and `Provenance.now(method, residual, unit, views)`).
@@ -34,7 +35,7 @@ from host.rig.schema import (
     TrackSpec,
     WorkpieceSpec,
 )
-from host.rig.store import UPDATABLE, backups, save_rig, update_rig, with_updates
+from host.rig.store import UPDATABLE, backups, current_rig, save_rig, update_rig, with_updates
 
 __all__ = [
     "INTRINSIC_KEYS",
@@ -59,6 +60,7 @@ __all__ = [
     "build_kinematics",
     "build_scene",
     "build_track",
+    "current_rig",
     "dumps_rig",
     "load_rig",
     "loads_rig",

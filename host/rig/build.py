@@ -18,7 +18,7 @@ from host.geometry.track import Track
 from host.geometry.transforms import FloatArray
 from host.rig.schema import RigSpec, TrackSpec
 
-OPEN_TRACK_MARGIN_MM = 0.0  # an open track's limit switches sit at its two ends by default
+OPEN_TRACK_MARGIN_MM = 100.0  # an open track's limit switches sit this far inside its ends
 LOOP_TRAVEL_BEFORE_MM = 400.0  # a closed loop's cable carrier: travel before s = 0 ...
 LOOP_TRAVEL_AFTER_MM = 500.0  # ... and past one lap
 

@@ -207,7 +207,7 @@ class HeadSpec:
     pan_min_rad: float = -math.pi
     pan_max_rad: float = math.pi
     tilt_min_rad: float = -math.pi / 2
-    tilt_max_rad: float = math.pi / 2
+    tilt_max_rad: float = math.radians(30.0)
 
 
 @dataclass(frozen=True)
@@ -260,7 +260,7 @@ class WorkpieceSpec:
 
     frame: Pose6 = field(
         default_factory=lambda: Pose6(
-            np.array([[1.0, 0, 0, -300.0], [0, 1.0, 0, -300.0], [0, 0, 1.0, 0.0], [0, 0, 0, 1.0]]),
+            np.eye(4),
             NOMINAL_SIGMA_PLACEMENT_RAD,
             NOMINAL_SIGMA_PLACEMENT_MM,
         )
@@ -284,7 +284,7 @@ def runway_track() -> TrackSpec:
         segments,
         placement,
         closed=True,
-        home=Scalar(150.0, SURVEY_SIGMA_MM),
+        home=Scalar(0.0, SURVEY_SIGMA_MM),
         travel_min_mm=-400.0,
         travel_max_mm=length + 500.0,
     )

@@ -114,3 +114,23 @@ def _prune(target: Path) -> None:
     """Keep only the newest KEEP_BACKUPS backups."""
     for old in backups(target)[:-KEEP_BACKUPS]:
         old.unlink(missing_ok=True)
+
+
+_cache: dict[str, tuple[tuple[int, int], RigSpec]] = {}
+
+
+def current_rig(path: str | Path) -> RigSpec:
+    """The rig file as it is now (reread only when it changed); "" is the paper's nominal rig."""
+    if not str(path):
+        return RigSpec()
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise RigError([f"rig.path = {str(path)!r}: cannot read: {exc}"]) from None
+    stamp = (st.st_mtime_ns, st.st_size)
+    cached = _cache.get(str(path))
+    if cached is not None and cached[0] == stamp:
+        return cached[1]
+    spec = load_rig(path)
+    _cache[str(path)] = (stamp, spec)
+    return spec

@@ -42,7 +42,7 @@ LINK_CLOSE_TIMEOUT_S = 0.4
 STATE_POLL_S = 0.1
 LINK_POLL_S = 0.25
 FIRST_RETRY_S = 0.5
-RESTART_SECTIONS = ("link", "track", "head", "camera", "model", "registration", "control")
+RESTART_SECTIONS = ("link", "camera", "registration", "control")
 
 
 class Phase(enum.Enum):
@@ -90,6 +90,8 @@ class Daemon:
         self.commissioning = commissioning or CommissioningEnv.for_daemon(
             config, lambda: getattr(self.frame_loop, "frame_tap", None)
         )
+        if self.commissioning.after_write is None:  # a calibration's result takes effect now
+            self.commissioning.after_write = self.reload
         self.server = ControlServer(self._op_context(), config.control)
         self._stop = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -170,6 +172,7 @@ class Daemon:
             return []
         try:
             applied = await self._apply(new)
+            applied += self._apply_rig(new)
         except OSError as exc:
             log.error("reload could not open an output", extra={"kv": {"error": exc}})
             applied = []
@@ -179,6 +182,22 @@ class Daemon:
             log.warning("changes need a restart", extra={"kv": {"sections": ",".join(skipped)}})
         self.record(KIND_EVENT, time.monotonic_ns(), {"reload": applied, "skipped": skipped})
         return applied
+
+    def _apply_rig(self, new: Config) -> list[str]:
+        """A changed (or newly named) rig file goes to the pose pipeline; a bad one is refused."""
+        from host.service.wiring import WiringError, rig_spec
+
+        try:
+            changed = rig_spec(new) != getattr(self.frame_loop, "rig", None)
+        except WiringError as exc:
+            log.error("rig file rejected, keeping the running rig", extra={"kv": {"why": exc}})
+            return []
+        apply = getattr(self.frame_loop, "apply_rig", None)
+        if not changed or apply is None:
+            return []
+        apply(new)
+        self.config = dataclasses.replace(self.config, rig=new.rig)
+        return ["rig"]
 
     async def _apply(self, new: Config) -> list[str]:
         """Swap in the sections that change without reconnecting."""
@@ -332,7 +351,9 @@ class Daemon:
 
     def _op_context(self) -> OpContext:
         """What the control ops may see."""
-        head = self.config.head
+        from host.rig import current_rig
+
+        head = current_rig(self.config.rig.path).head
         return OpContext(
             self.controller,
             latest_pose=lambda: self.latest_pose,
@@ -344,16 +365,23 @@ class Daemon:
         )
 
     def _config_calibration(self) -> dict[str, Any]:
-        """The calibration in use: from the config until a calibration run replaces it."""
-        cam = self.config.camera
-        intrinsics = {k: getattr(cam, k) for k in ("fx", "fy", "skew", "u0", "v0")}
-        distortion = {k: getattr(cam, k) for k in ("k1", "k2", "p1", "p2", "k3")}
-        m_cr = [list(row) for row in self.config.head.m_cr]
+        """The calibration in use: the rig file's (its values, σ and provenance)."""
+        from host.rig import INTRINSIC_KEYS, current_rig
+
+        try:
+            rig = current_rig(self.config.rig.path)
+        except ConfigError as exc:  # the file went bad since the start: say so, keep serving
+            return {"source": self.config.rig.path, "error": str(exc)}
+        intr = rig.camera.intrinsics.as_dict()
+        sigma = dict(zip(INTRINSIC_KEYS, rig.camera.intrinsics.sigma, strict=True))
         return {
-            "source": "config",
-            "intrinsics": intrinsics,
-            "distortion": distortion,
-            "m_cr": m_cr,
+            "source": self.config.rig.path or "built-in (paper's rig, nominal)",
+            "intrinsics": {k: intr[k] for k in ("fx", "fy", "skew", "u0", "v0")},
+            "distortion": {k: intr[k] for k in ("k1", "k2", "p1", "p2", "k3")},
+            "intrinsics_sigma": sigma,
+            "intrinsics_method": rig.camera.intrinsics.provenance.method,
+            "m_cr": rig.head.m_cr.matrix.tolist(),
+            "m_cr_method": rig.head.m_cr.provenance.method,
         }
 
     def _spawn(self, job: Coroutine[Any, Any, Any]) -> None:

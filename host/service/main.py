@@ -40,7 +40,8 @@ def run(
     """Run the daemon to completion; the process exit code."""
     try:
         config = load_config(args.config) if args.config else Config()
-    except ConfigError as exc:
+        wiring.rig_spec(config)  # a bad rig file stops the start, naming its key
+    except (ConfigError, wiring.WiringError) as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
     try:
@@ -84,7 +85,9 @@ def _fake_factories() -> tuple[ControllerFactory | None, FrameLoopFactory | None
         config: Config, ctl: ControllerLike, sink: PoseSink, tap: RecordTap
     ) -> FakeFrameLoop:
         assert isinstance(ctl, FakeController)
-        return FakeFrameLoop(ctl, sink, config.camera.fps, config.track.height_mm)
+        rig = wiring.rig_spec(config)
+        height_mm = float(rig.track.placement.matrix[2, 3])
+        return FakeFrameLoop(ctl, sink, rig.camera.fps, height_mm)
 
     log.warning("running with the FAKE controller", extra={"kv": {"env": FAKE_ENV}})
     return controller, frames

@@ -29,7 +29,7 @@ from host.recording.writer import (
     KIND_POSE,
     KIND_RANGE,
 )
-from host.service.wiring import build_pose_source
+from host.service.wiring import build_pose_source, exposure_latency_ms
 from protocol import Stream
 
 # The replay buffers must hold whatever rate was recorded: size them for the fastest stream.
@@ -41,7 +41,7 @@ class ReplayRegistration:
 
     def __init__(self, config: Config) -> None:
         self.source, self.feed = build_pose_source(
-            config, REPLAY_RATES_HZ, config.camera.exposure_latency_ms
+            config, REPLAY_RATES_HZ, exposure_latency_ms(config)
         )
         self.malformed = 0  # sample records missing a field or holding a wrong type: skipped
 

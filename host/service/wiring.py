@@ -17,21 +17,19 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-import numpy as np
-
 from host.commissioning.frames import FrameTap
-from host.config import Config, SegmentConfig
+from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import FrameSource, VideoCaptureSource
+from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.geometry.camera import CameraModel
-from host.geometry.head import Rig, orthonormalize_T
+from host.geometry.head import Rig
 from host.geometry.model import Wireframe, load_model, manipulator_wireframe
-from host.geometry.rangefinder import RangeScene, Surface
-from host.geometry.track import Track, runway
-from host.geometry.transforms import FloatArray, make_T, rot_z
+from host.geometry.track import Track
+from host.geometry.transforms import FloatArray
 from host.link import Controller
 from host.link.common import LinkDown, LinkEvent, LinkState
 from host.link.reconnect import BackoffConfig
@@ -40,6 +38,10 @@ from host.link.shedding import SheddingConfig
 from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_RANGE
 from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
 from host.registration.track_feed import PoseFeed
+from host.rig import RigError, RigSpec, build_kinematics, build_scene, current_rig
+from host.rig import build_camera as build_camera_model
+from host.rig import build_track as rig_build_track
+from host.rig import workpiece_pose as rig_workpiece_pose
 from host.service.daemon import RecordTap
 from host.transport import Transport, TransportConfigError, create_transport
 from protocol import ParamId
@@ -287,7 +289,7 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
     ctrl = Controller(
         build_transport(config), session, backoff, on_event=on_event, shedding=shedding
     )
-    ranging = bool(config.rangefinder.surfaces)
+    ranging = bool(rig_spec(config).hall.surfaces)
     adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
     ctrl.add_sink(RecordingSink(record_tap, adapter))
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
@@ -297,64 +299,50 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
 # ---- rig, camera, model --------------------------------------------------------------------
 
 
-def build_track(config: Config) -> Track:
-    """The runway preset, or the custom segments placed at the configured height."""
-    track = config.track
-    if track.preset == "runway":
-        return runway(track.height_mm)
-    segments = [_segment_dict(seg) for seg in track.segments]
+def rig_spec(config: Config) -> RigSpec:
+    """The rig description `[rig] path` names (the paper's rig when empty); WiringError if bad."""
     try:
-        return Track.from_config(segments, make_T(np.eye(3), [0.0, 0.0, track.height_mm]))
+        return current_rig(config.rig.path)
+    except RigError as exc:
+        raise WiringError("; ".join(exc.problems)) from exc
+
+
+def build_track(config: Config) -> Track:
+    """The rig file's track, placed in the world."""
+    try:
+        return rig_build_track(rig_spec(config).track)
     except ValueError as exc:
-        raise WiringError(f"[track]: {exc}") from exc
-
-
-def _segment_dict(seg: SegmentConfig) -> dict[str, Any]:
-    """A config segment in the geometry's dict form (angles back to degrees)."""
-    if seg.kind == "straight":
-        return {"kind": "straight", "length_mm": seg.length_mm}
-    return {"kind": "arc", "radius_mm": seg.radius_mm, "angle_deg": math.degrees(seg.angle_rad)}
+        raise WiringError(f"track: {exc}") from exc
 
 
 def build_rig(config: Config) -> Rig:
     """Track, M_cr and the rangefinder mount (rotations made orthonormal)."""
-    return Rig(
-        track=build_track(config),
-        T_r_c=orthonormalize_T(np.array(config.head.m_cr)),
-        T_r_l=orthonormalize_T(np.array(config.rangefinder.mount)),
-    )
+    return build_kinematics(rig_spec(config))  # validated on load: the path builds
 
 
 def build_ranger(config: Config, rig: Rig) -> RangeFixer | None:
-    """Rangefinder fixes from `[rangefinder]`, if it lists surveyed surfaces."""
-    rf = config.rangefinder
-    if not rf.surfaces:
+    """Rangefinder fixes on the rig file's surveyed surfaces, if it lists any."""
+    spec = rig_spec(config)
+    scene = build_scene(spec)
+    if scene is None:
         return None
-    # Validated on load (config_rangefinder.surface_problems applies the geometry's rule).
-    surfaces = tuple(
-        Surface(s.name, s.point_mm, s.normal, s.radius_mm or math.inf) for s in rf.surfaces
-    )
-    return RangeFixer(rig, RangeScene(surfaces), RangeFixConfig(noise_mm=rf.noise_mm))
+    return RangeFixer(rig, scene, RangeFixConfig(noise_mm=spec.rangefinder.noise_mm))
 
 
 def build_camera(config: Config) -> CameraModel:
-    """The camera intrinsics of `[camera]`."""
-    cam = config.camera
-    return CameraModel(
-        cam.fx, cam.fy, cam.skew, cam.u0, cam.v0,
-        cam.k1, cam.k2, cam.p1, cam.p2, cam.k3, cam.width, cam.height,
-    )  # fmt: skip
+    """The rig file's camera intrinsics and resolution."""
+    return build_camera_model(rig_spec(config))
 
 
 def build_model(config: Config) -> Wireframe:
     """The workpiece wireframe: a file, or the built-in manipulator."""
-    path = config.model.path
+    path = rig_spec(config).workpiece.model
     if path == BUILTIN_MODEL:
         return manipulator_wireframe()
     try:
         return load_model(path)
     except (OSError, ValueError) as exc:
-        raise WiringError(f"model.path = {path!r}: {exc}") from exc
+        raise WiringError(f"workpiece.model = {path!r}: {exc}") from exc
 
 
 # ---- samples → poses -----------------------------------------------------------------------
@@ -370,12 +358,13 @@ def build_pose_source(
     horizon_s = config.registration.horizon_ms / 1000.0
     enc_cap = max(MIN_BUFFER_SAMPLES, math.ceil(horizon_s * rates_hz.get(Stream.ENCODER, 1)))
     head_cap = max(MIN_BUFFER_SAMPLES, math.ceil(horizon_s * rates_hz.get(Stream.HEAD, 1)))
+    spec = rig_spec(config)
     rig = build_rig(config)
     feed = PoseFeed(
         SampleBuffer(1, enc_cap, ENCODER_HORIZON_NS, MAX_GAP_NS),
         AngleBuffer(2, head_cap, HEAD_HORIZON_NS, MAX_GAP_NS),
-        home_s_mm=config.track.home_s_mm,
-        marks_mm=config.track.reference_marks_mm,
+        home_s_mm=spec.track.home.value,
+        marks_mm=spec.track.marks.s_mm,
         lap_mm=rig.track.length_mm if rig.track.closed else None,
         pitch_mm=pitch_mm,
         ranger=build_ranger(config, rig),
@@ -385,10 +374,33 @@ def build_pose_source(
     return source, feed
 
 
+def apply_rig(config: Config, poses: PoseSource, feed: PoseFeed, latency_ms: float) -> None:
+    """Swap a changed rig file into a running pose pipeline (SIGHUP): samples keep flowing.
+
+    The buffers keep their samples; those already pushed were placed with the old home and
+    chain correction, which the next homing (or the next few samples, for a live trolley)
+    replaces.
+    """
+    spec = rig_spec(config)
+    rig = build_rig(config)
+    poses.rig = rig
+    poses.exposure_latency_ns = round(latency_ms * 1e6)
+    feed.home_s_mm = spec.track.home.value
+    feed.marks_mm = spec.track.marks.s_mm
+    feed.lap_mm = rig.track.length_mm if rig.track.closed else None
+    feed.ranger = build_ranger(config, rig)
+    if (feed.marks_mm or feed.ranger is not None) and feed.chain is None:
+        feed.chain = ChainFilter(ChainFilterConfig(chain_pitch_mm=feed.pitch_mm() or 12.7))
+
+
+def exposure_latency_ms(config: Config) -> float:
+    """The rig file's calibrated time from mid-exposure to the frame's stamp."""
+    return rig_spec(config).camera.latency.value
+
+
 def workpiece_pose(config: Config) -> FloatArray:
-    """T_w_p from `[model]`: the workpiece origin in the world, turned by its yaw about z."""
-    model = config.model
-    return make_T(rot_z(model.yaw_rad), model.position_mm)
+    """T_w_p: the rig file's workpiece frame in the world (full 6-DoF)."""
+    return rig_workpiece_pose(rig_spec(config))
 
 
 class RateMeter:
@@ -431,9 +443,16 @@ class PosePublisher:
     """Without a camera: the pose at the current time, at a fixed rate, from the buffers."""
 
     def __init__(
-        self, poses: PoseSource, controller: LinkController, sink: PoseSink, rate_hz: float
+        self,
+        poses: PoseSource,
+        controller: LinkController,
+        sink: PoseSink,
+        rate_hz: float,
+        feed: PoseFeed | None = None,
     ) -> None:
         self.poses = poses
+        self.feed = feed
+        self.rig: RigSpec | None = None  # the rig file's content the poses are computed with
         self.controller = controller
         self.sink = sink
         self.period_ns = round(1e9 / rate_hz)
@@ -456,6 +475,12 @@ class PosePublisher:
                 next_ns = now + self.period_ns
             await asyncio.sleep((next_ns - now) / 1e9)
             self.publish(time.monotonic_ns())
+
+    def apply_rig(self, config: Config) -> None:
+        """A changed rig file (SIGHUP): the poses from now on use it."""
+        if self.feed is not None:
+            apply_rig(config, self.poses, self.feed, 0.0)
+        self.rig = rig_spec(config)
 
     def publish(self, t_ns: int) -> bool:
         """One pose at t_ns to the sink; False (counted) when the buffers cannot give one."""
@@ -480,9 +505,13 @@ class CameraPoseLoop:
         controller: LinkController,
         sink: PoseSink,
         record_tap: RecordTap,
+        feed: PoseFeed | None = None,
     ) -> None:
         self.frame_tap = FrameTap(source)  # the newest frame, for calibration runs
         self.source: FrameSource = self.frame_tap
+        self.registrar = registrar
+        self.feed = feed
+        self.rig: RigSpec | None = None  # the rig file's content the frames are registered with
         self.controller = controller
         self.sink = sink
         self.record_tap = record_tap
@@ -494,6 +523,18 @@ class CameraPoseLoop:
     def fps(self) -> float:
         """Frames registered per second, recently."""
         return self._meter.rate()
+
+    def apply_rig(self, config: Config) -> None:
+        """A changed rig file (SIGHUP): camera model, workpiece and kinematics from now on."""
+        old = self.registrar
+        if self.feed is not None:
+            apply_rig(config, old.poses, self.feed, exposure_latency_ms(config))
+        T_w_p = workpiece_pose(config)
+        self.registrar = Registrar(
+            old.poses, build_camera(config), build_model(config), lambda t_ns: T_w_p, draw=False
+        )
+        self.loop.process = self.registrar  # the next frame registers with the new rig
+        self.rig = rig_spec(config)
 
     async def run(self) -> None:
         """Run the frame loop until cancelled or the source ends; release the camera after."""
@@ -517,11 +558,11 @@ class CameraPoseLoop:
 
 def open_camera(config: Config) -> FrameSource | None:
     """The configured camera, or None for "none"/"sim" or when it cannot be opened (logged)."""
-    cam = config.camera
-    if isinstance(cam.source, str) and cam.source.lower() in NO_CAMERA_SOURCES:
+    source, cam = config.camera.source, rig_spec(config).camera
+    if isinstance(source, str) and source.lower() in NO_CAMERA_SOURCES:
         return None
     try:
-        return VideoCaptureSource(cam.source, cam.width, cam.height, cam.fps)
+        return VideoCaptureSource(source, cam.width, cam.height, cam.fps)
     except OSError as exc:
         log.error(
             "camera unavailable, publishing poses without frames", extra={"kv": {"error": exc}}
@@ -530,21 +571,32 @@ def open_camera(config: Config) -> FrameSource | None:
 
 
 def frame_loop_factory(
-    config: Config, controller: ControllerLike, pose_sink: PoseSink, record_tap: RecordTap
+    config: Config,
+    controller: ControllerLike,
+    pose_sink: PoseSink,
+    record_tap: RecordTap,
+    camera_source: FrameSource | None = None,
 ) -> FrameLoopLike:
-    """The pose loop on the controller's samples: per camera frame, or at a fixed rate."""
+    """The pose loop on the controller's samples: per camera frame, or at a fixed rate.
+
+    `camera_source` replaces the configured camera (the demo hands the simulator's camera in).
+    """
     if not isinstance(controller, LinkController):
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
-    camera = open_camera(config)
-    latency_ms = config.camera.exposure_latency_ms if camera is not None else 0.0
+    camera = camera_source or open_camera(config)
+    latency_ms = exposure_latency_ms(config) if camera is not None else 0.0
     poses, feed = build_pose_source(
         config, controller.stream_rates_hz, latency_ms, controller.chain_pitch_mm
     )
     controller.ctrl.add_sink(feed)
     controller.track_feed = feed
     if camera is None:
-        return PosePublisher(poses, controller, pose_sink, config.camera.fps)
+        publisher = PosePublisher(poses, controller, pose_sink, rig_spec(config).camera.fps, feed)
+        publisher.rig = rig_spec(config)
+        return publisher
     T_w_p = workpiece_pose(config)  # fixed: measured at set-up, the workpiece does not move
     registrar = Registrar(poses, build_camera(config), model, lambda t_ns: T_w_p, draw=False)
-    return CameraPoseLoop(camera, registrar, controller, pose_sink, record_tap)
+    camera_loop = CameraPoseLoop(camera, registrar, controller, pose_sink, record_tap, feed)
+    camera_loop.rig = rig_spec(config)
+    return camera_loop

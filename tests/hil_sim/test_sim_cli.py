@@ -188,3 +188,44 @@ def test_unreadable_config_is_a_clear_error(tmp_path: Path) -> None:
     (tmp_path / "bad.toml").write_text("link = \n")
     with pytest.raises(SimOptionsError, match="TOML syntax"):
         load_table(str(tmp_path / "bad.toml"))
+
+
+OPEN_RIG = """
+[[track.segments]]
+kind = "straight"
+length_mm = 2500.0
+[[track.segments]]
+kind = "arc"
+radius_mm = 600.0
+angle_deg = -120.0
+[track.home]
+value_mm = 120.0
+"""
+
+
+async def test_bad_rig_file_exits_2_naming_the_key(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.toml"
+    rig.write_text("[camera]\nwidth = -5\n")
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "hil_sim", "--rig", str(rig),
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    out, err = await asyncio.wait_for(proc.communicate(), 20.0)
+    assert proc.returncode == 2, (out, err)
+    assert "camera.width = -5: out of range" in err.decode()
+
+
+def test_rig_file_is_the_simulated_track_and_tolerances_are_seeded(tmp_path: Path) -> None:
+    from hil_sim.cli import make_scenario
+
+    rig = tmp_path / "rig.toml"
+    rig.write_text(OPEN_RIG)
+    exact = make_scenario(SimOptions(rig=str(rig), seed=3))
+    assert not exact.track.closed
+    assert exact.track.home_s_mm == 120.0
+    assert exact.track.length_mm == pytest.approx(2500.0 + 600.0 * 2 * 3.141592653589793 / 3)
+    a = make_scenario(SimOptions(rig=str(rig), seed=3, tolerances=True))
+    b = make_scenario(SimOptions(rig=str(rig), seed=3, tolerances=True))
+    c = make_scenario(SimOptions(rig=str(rig), seed=4, tolerances=True))
+    assert a.track.length_mm == b.track.length_mm != c.track.length_mm
+    assert a.track.length_mm != exact.track.length_mm

@@ -162,3 +162,19 @@ def test_unreadable_rig_file_names_the_path(tmp_path: Path) -> None:
     bad.write_text("[camera]\nfps = 0\n")
     with pytest.raises(RigError, match=r"bad\.toml: camera\.fps = 0"):
         load_rig(bad)
+
+
+def test_rig_default_prints_a_file_rig_check_accepts(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from host.cli import main
+
+    assert main(["rig", "default"]) == 0
+    path = tmp_path / "rig.toml"
+    path.write_text(capsys.readouterr().out)
+    assert load_rig(path) == RigSpec()
+    assert main(["rig", "check", str(path)]) == 0
+    assert "ok (paper runway, 16283.2 mm track, closed)" in capsys.readouterr().out
+    path.write_text(CUSTOM_OPEN + "[head]\ntilt_min_deg = 200\n")
+    assert main(["rig", "check", str(path)]) == 2
+    assert "head.tilt_min_deg = 200: out of range" in capsys.readouterr().err

@@ -223,7 +223,7 @@ async def test_ready_after_grace_says_why_without_link(tmp_path: Path) -> None:
 
 async def test_invalid_config_exits_2_with_every_problem(tmp_path: Path) -> None:
     config = tmp_path / "bad.toml"
-    config.write_text('[link]\nkind = "pigeon"\n[camera]\nfps = 0\n')
+    config.write_text('[link]\nkind = "pigeon"\n[camera]\nsource = -1\n')
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "host.service", "daemon", "--config", str(config),
         stderr=asyncio.subprocess.PIPE,
@@ -231,4 +231,18 @@ async def test_invalid_config_exits_2_with_every_problem(tmp_path: Path) -> None
     _, err = await proc.communicate()
     assert proc.returncode == 2
     assert b"link.kind = 'pigeon'" in err
-    assert b"camera.fps = 0" in err
+    assert b"camera.source = -1" in err
+
+
+async def test_bad_rig_file_exits_2_naming_its_key(tmp_path: Path) -> None:
+    rig = tmp_path / "rig.toml"
+    rig.write_text("[camera]\nfps = 0\n")
+    config = tmp_path / "orbitar.toml"
+    config.write_text(f'[rig]\npath = "{rig}"\n')
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "host.service", "daemon", "--config", str(config),
+        stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    _, err = await proc.communicate()
+    assert proc.returncode == 2
+    assert b"rig.toml: camera.fps = 0: out of range" in err

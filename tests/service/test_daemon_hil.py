@@ -22,6 +22,7 @@ from typing import Any
 
 import pytest
 
+from host.config import Config
 from host.control.client import ControlClient
 from tests.service.test_daemon import connect
 
@@ -31,17 +32,23 @@ kind = "serial"
 url = "{dir}/sim"
 baud = 115200
 heartbeat_ms = 100
-[track]
-home_s_mm = 150.0
-reference_marks_mm = [250.0, 400.0]
+[rig]
+path = "{dir}/rig.toml"
 [camera]
 source = "none"
-fps = 20.0
 [control]
 socket_path = "{dir}/ctl.sock"
 [systemd]
 ready_grace_s = 30.0
 status_interval_s = 0.5
+"""
+RIG = """
+[track.home]
+value_mm = 150.0
+[track.marks]
+s_mm = [250.0, 400.0]
+[camera]
+fps = 20.0
 """
 WATCHDOG_USEC = "400000"
 HOME_SPEED_UM_S = 150_000  # the default 50 mm/s would spend ~8 s of the test homing
@@ -147,6 +154,7 @@ async def start_daemon(tmp_path: Path) -> tuple[asyncio.subprocess.Process, Noti
     """The daemon with the real link, a notify socket of ours and a watchdog period."""
     config = tmp_path / "orbitar.toml"
     config.write_text(CONFIG.format(dir=tmp_path))
+    (tmp_path / "rig.toml").write_text(RIG)
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     sock.bind(str(tmp_path / "notify.sock"))
     sock.setblocking(False)
@@ -255,7 +263,8 @@ async def test_daemon_waits_for_a_missing_controller_then_connects(tmp_path: Pat
 async def test_bad_model_path_is_a_clear_exit_2(tmp_path: Path) -> None:
     config = tmp_path / "orbitar.toml"
     text = CONFIG.format(dir=tmp_path).replace('source = "none"', f'source = "{tmp_path}/x.avi"')
-    config.write_text(text + f'[model]\npath = "{tmp_path}/missing.obj"\n')
+    config.write_text(text)
+    (tmp_path / "rig.toml").write_text(RIG + f'[workpiece]\nmodel = "{tmp_path}/missing.obj"\n')
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "host.service", "daemon", "--config", str(config),
         stderr=asyncio.subprocess.PIPE,
@@ -268,17 +277,18 @@ async def test_bad_model_path_is_a_clear_exit_2(tmp_path: Path) -> None:
 # ---- the wiring's pieces, in process -------------------------------------------------------
 
 
-def test_custom_track_config_builds_the_same_runway() -> None:
-    from host.config import loads_config
+def test_custom_track_rig_builds_the_same_runway() -> None:
     from host.service.wiring import build_rig, build_track
+    from tests.rig.helpers import rig_config
 
     segments = "".join(
         f'[[track.segments]]\nkind = "straight"\nlength_mm = {length}\n'
         '[[track.segments]]\nkind = "arc"\nradius_mm = 1000.0\nangle_deg = 90.0\n'
         for length in (4000.0, 1000.0, 4000.0, 1000.0)
     )
-    custom = loads_config(f'[track]\npreset = "custom"\nheight_mm = 4000.0\n{segments}')
-    track, preset = build_track(custom), build_track(loads_config(""))
+    placement = "[track.placement]\nmatrix = [[1,0,0,0],[0,1,0,0],[0,0,1,4000],[0,0,0,1]]\n"
+    custom = rig_config(segments + placement)
+    track, preset = build_track(custom), build_track(Config())
     assert abs(track.length_mm - preset.length_mm) < 1e-9
     assert track.closed
     # Same shape; the custom track starts at the world origin, the preset at the runway corner.

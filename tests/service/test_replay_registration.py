@@ -68,11 +68,13 @@ def test_replay_reports_a_broken_recording(
 
 def test_replay_applies_recorded_rangefinder_fixes(tmp_path: Path) -> None:
     """A stretched chain read against a surveyed wall: the replay corrects as the daemon did."""
-    config = tmp_path / "rig.toml"
-    config.write_text(
-        "[track]\nhome_s_mm = 100.0\n[[rangefinder.surfaces]]\nname = 'east wall'\n"
+    rig = tmp_path / "rig.toml"
+    rig.write_text(
+        "[track.home]\nvalue_mm = 100.0\n[[hall.surfaces]]\nname = 'east wall'\n"
         "point_mm = [6000, 0, 0]\nnormal = [-1, 0, 0]\n"
     )
+    config = tmp_path / "orbitar.toml"
+    config.write_text(f'[rig]\npath = "{rig}"\n')
     stretch = 1.005
     writer = RecordingWriter(tmp_path / "rec")
     writer.open()

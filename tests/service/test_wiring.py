@@ -20,6 +20,7 @@ from host.service.wiring import (
     workpiece_pose,
 )
 from protocol.enums import Inputs
+from tests.rig.helpers import rig_config
 
 STRETCH = 1.005  # a worn chain: 0.5 % longer than nominal
 HOME_S_MM = 1000.0
@@ -33,7 +34,7 @@ HOMED = int(Inputs.HOMED)
 def marked_feed(pitch_mm: float | None = 12.7) -> PoseFeed:
     """A feed on the default runway with home and marks configured."""
     marks = ", ".join(str(m) for m in MARKS_MM)
-    config = loads_config(f"[track]\nhome_s_mm = {HOME_S_MM}\nreference_marks_mm = [{marks}]\n")
+    config = rig_config(f"[track.home]\nvalue_mm = {HOME_S_MM}\n[track.marks]\ns_mm = [{marks}]\n")
     _, feed = build_pose_source(config, STREAM_RATES_HZ["serial"], pitch_mm=lambda: pitch_mm)
     return feed
 
@@ -85,7 +86,7 @@ def test_stretched_chain_is_corrected_after_two_marks() -> None:
 
 
 def test_without_marks_the_feed_only_adds_home() -> None:
-    config = loads_config("[track]\nhome_s_mm = 250.5\n")
+    config = rig_config("[track.home]\nvalue_mm = 250.5\n")
     _, feed = build_pose_source(config, STREAM_RATES_HZ["can"])
     assert feed.chain is None
     feed.on_encoder(1_000, 100.0, 0.0, 0)
@@ -101,7 +102,7 @@ def test_without_marks_the_feed_only_adds_home() -> None:
 
 def test_chain_pitch_follows_identify_until_the_first_reference() -> None:
     pitch: list[float | None] = [None]
-    config = loads_config("[track]\nreference_marks_mm = [500.0, 1500.0]\n")
+    config = rig_config("[track.marks]\ns_mm = [500.0, 1500.0]\n")
     _, feed = build_pose_source(config, STREAM_RATES_HZ["xbee"], pitch_mm=lambda: pitch[0])
     assert feed.chain is not None
     assert feed.chain.config.chain_pitch_mm == DEFAULT_CHAIN_PITCH_MM
@@ -147,8 +148,11 @@ def test_marks_count_only_after_homing_and_rehoming_starts_afresh() -> None:
     assert feed.stats()["chain_scale"] == 1.0
 
 
-def test_workpiece_pose_from_model_keys() -> None:
-    config = loads_config("[model]\nposition_mm = [1000, -250.5, 12]\nyaw_deg = 90\n")
+def test_workpiece_pose_from_the_rig_file() -> None:
+    config = rig_config(
+        "[workpiece.frame]\nmatrix = [[0, -1, 0, 1000], [1, 0, 0, -250.5], [0, 0, 1, 12], "
+        "[0, 0, 0, 1]]\n"
+    )
     T_w_p = workpiece_pose(config)
     assert np.allclose(T_w_p[:3, 3], [1000.0, -250.5, 12.0])
     assert np.allclose(T_w_p[:3, :3] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])  # x_p along y_w
@@ -156,8 +160,8 @@ def test_workpiece_pose_from_model_keys() -> None:
 
 
 def test_factory_wires_the_feed_into_link_stats() -> None:
-    text = '[track]\nhome_s_mm = 100.0\nreference_marks_mm = [3000.0]\n[camera]\nsource = "none"\n'
-    config = loads_config(text)
+    rig = "[track.home]\nvalue_mm = 100.0\n[track.marks]\ns_mm = [3000.0]\n"
+    config = rig_config(rig, '[camera]\nsource = "none"\n')
     taps: list[Any] = []
     controller = controller_factory(config, lambda *rec: taps.append(rec))
     assert controller.chain_pitch_mm() is None  # no handshake yet
@@ -172,9 +176,9 @@ def test_factory_wires_the_feed_into_link_stats() -> None:
 
 
 def test_surveyed_surfaces_give_the_feed_rangefinder_fixes() -> None:
-    config = loads_config(
-        "[track]\nhome_s_mm = 100.0\n"
-        "[[rangefinder.surfaces]]\nname = 'east wall'\npoint_mm = [6000, 0, 0]\n"
+    config = rig_config(
+        "[track.home]\nvalue_mm = 100.0\n"
+        "[[hall.surfaces]]\nname = 'east wall'\npoint_mm = [6000, 0, 0]\n"
         "normal = [-1, 0, 0]\n"
     )
     source, feed = build_pose_source(config, STREAM_RATES_HZ["serial"])
