@@ -105,6 +105,7 @@ class SyntheticCamera:
     camera: CameraModel
     seed: int = 0
     noise_sigma_dn: float = NOISE_SIGMA_DN
+    blur_samples: int = BLUR_SAMPLES
     _rng: np.random.Generator = field(init=False, repr=False)
     _rays: FloatArray | None = field(default=None, init=False, repr=False)
 
@@ -162,16 +163,16 @@ class SyntheticCamera:
             grey = self._cast_charuco(T_c_b, board)
             mid = np.array(T_c_b, dtype=np.float64)
         else:
-            poses = interpolate_T(T_c_b, T_c_b_end, np.linspace(0.0, 1.0, BLUR_SAMPLES))
+            poses = interpolate_T(T_c_b, T_c_b_end, np.linspace(0.0, 1.0, self.blur_samples))
             acc = sum(self._cast_charuco(T, board).astype(np.float32) for T in poses)
-            grey = np.clip(np.rint(np.asarray(acc) / BLUR_SAMPLES), 0, 255).astype(np.uint8)
+            grey = np.clip(np.rint(np.asarray(acc) / self.blur_samples), 0, 255).astype(np.uint8)
             mid = np.asarray(interpolate_T(T_c_b, T_c_b_end, 0.5), dtype=np.float64)
         corners = np.asarray(board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
         uv, valid = self.camera.project(transform_points(mid, corners))
         inside = valid & (uv[:, 0] > 0) & (uv[:, 0] < self.camera.width - 1)
         inside &= (uv[:, 1] > 0) & (uv[:, 1] < self.camera.height - 1)
-        img3 = np.asarray(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
-        return BoardFrame(self._noisy(img3), mid, uv, inside)
+        img3 = np.asarray(cv2.cvtColor(self._noisy(grey), cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+        return BoardFrame(img3, mid, uv, inside)
 
     def _cast_charuco(self, T_c_b: FloatArray, board: cv2.aruco.CharucoBoard) -> UInt8Image:
         """Grey image of the board seen from T_c_b (no noise), background elsewhere."""
@@ -211,8 +212,10 @@ class SyntheticCamera:
         """Add seeded Gaussian noise and clip back to uint8."""
         if self.noise_sigma_dn <= 0.0:
             return img
-        noise = self._rng.normal(0.0, self.noise_sigma_dn, img.shape)
-        return np.clip(img + noise, 0, 255).astype(np.uint8)
+        noise = self._rng.standard_normal(img.shape, dtype=np.float32)
+        noise *= np.float32(self.noise_sigma_dn)
+        noise += img
+        return np.clip(noise, 0, 255).astype(np.uint8)
 
     def _pixel_rays(self) -> FloatArray:
         """Undistorted normalised coordinates (H, W, 2) of every pixel, computed once."""

@@ -9,6 +9,7 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 from host.bus import fleet
+from host.commissioning import cli as commissioning_cli
 from host.control import cli_commands
 from host.demo import run as demo_run
 from host.rig import cli as rig_cli
@@ -29,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     demo_run.add_parser(sub)
     cli_commands.add_parsers(sub)
+    commissioning_cli.add_parsers(sub)
     rig_cli.add_parser(sub)
     _add_sim_parser(sub)
     fleet.add_parser(sub)

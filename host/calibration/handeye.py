@@ -9,19 +9,23 @@ known, and for every view
 with two unknowns: M_cr = T_r_c and T_b_k (where the track lies in the target frame). OpenCV's
 calibrateRobotWorldHandEye (Shah's method) gives a closed-form start from per-view PnP poses; a
 Levenberg-Marquardt pass on the reprojection error of all target points then refines both, as
-the closed form weighs rotation and translation arbitrarily. T_w_track = T_w_b · T_b_k.
+the closed form weighs rotation and translation arbitrarily (host.calibration.lsq, which also
+gives the 12×12 covariance of both transforms as local perturbations T·exp(δ), δ = (ω, t)).
+T_w_track = T_w_b · T_b_k, its covariance adding the surveyed board pose's.
 T_t_r (head mount on the trolley) is taken as known: it is not separable from M_cr and T_b_k with
 a head whose axes are the only source of rotation on a straight.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from host.calibration import lsq
 from host.geometry.camera import CameraModel
 from host.geometry.head import head_rotation
 from host.geometry.pnp import solve_sqpnp
@@ -36,10 +40,7 @@ from host.geometry.transforms import (
 )
 
 MIN_VIEWS = 3
-LM_ITERATIONS = 50
 LM_STEP = 1e-6  # finite-difference step for the Jacobian (rad and mm)
-LM_LAMBDA0 = 1e-3
-LM_TOL = 1e-10  # relative cost decrease at which LM stops
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class HandEyeView:
 
 @dataclass(frozen=True)
 class HandEyeResult:
-    """Estimated M_cr and track placement, with residuals before and after refinement."""
+    """Estimated M_cr and track placement, their covariances, residuals before and after."""
 
     M_cr: FloatArray  # T_r_c
     T_b_track: FloatArray
@@ -64,13 +65,22 @@ class HandEyeResult:
     initial_rms_px: float  # reprojection RMS of the closed-form (OpenCV) solution
     rotation_residual_rad: FloatArray  # per view, predicted vs PnP camera pose
     translation_residual_mm: FloatArray
+    covariance: FloatArray  # 12×12 over (δ M_cr, δ T_b_track), local (ω rad, t mm)
+    track_covariance: FloatArray  # 6×6 of T_w_track, the board survey's included
+    per_view_rms_px: FloatArray
+    residuals_px: list[FloatArray]
 
-    def to_config(self) -> dict[str, object]:
-        """{"head": {"m_cr": 4x4}, "track": {"T_w_track": 4x4}} as nested lists."""
-        return {
-            "head": {"m_cr": self.M_cr.tolist()},
-            "track": {"T_w_track": self.T_w_track.tolist()},
-        }
+    @property
+    def cov_M_cr(self) -> FloatArray:
+        """6×6 local covariance of M_cr."""
+        return np.asarray(self.covariance[:6, :6], dtype=np.float64)
+
+    def sigma(
+        self, cov: FloatArray
+    ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """(σ rotation rad ×3, σ translation mm ×3) of a 6×6 local covariance."""
+        d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        return (float(d[0]), float(d[1]), float(d[2])), (float(d[3]), float(d[4]), float(d[5]))
 
 
 def calibrate_handeye(
@@ -79,8 +89,15 @@ def calibrate_handeye(
     camera: CameraModel,
     T_t_r: ArrayLike | None = None,
     T_w_b: ArrayLike | None = None,
+    cov_T_w_b: ArrayLike | None = None,
+    camera_cov: ArrayLike | None = None,
 ) -> HandEyeResult:
-    """Solve M_cr and T_w_track; T_w_b is the target's world pose (default: world = target)."""
+    """Solve M_cr and T_w_track; T_w_b is the target's surveyed world pose (default: world = b).
+
+    `camera_cov` (10×10 over CAMERA_KEYS, e.g. from the intrinsics calibration) adds the
+    camera's own uncertainty to the result's: a focal length off by 0.1 % moves the camera by
+    0.1 % of the board distance, far more than the pixel noise does.
+    """
     if len(views) < MIN_VIEWS:
         raise ValueError(f"need at least {MIN_VIEWS} views, got {len(views)}")
     mount = np.eye(4) if T_t_r is None else np.asarray(T_t_r, dtype=np.float64)
@@ -90,11 +107,58 @@ def calibrate_handeye(
     problem = _Problem(views, T_k_r, camera)
     initial = problem.rms(M_cr0, T_b_k0)
     M_cr, T_b_k = problem.refine(M_cr0, T_b_k0)
+    r = problem.residuals(M_cr, T_b_k)
+    J = problem.jacobian(M_cr, T_b_k, r)
+    cov = lsq.covariance(J, r)  # linearised at the solution, in its own local frame
+    if camera_cov is not None:
+        cov = cov + _camera_term(problem, M_cr, T_b_k, J, np.asarray(camera_cov, dtype=np.float64))
     rot_res, trans_res = _pose_residuals(M_cr, T_b_k, T_k_r, T_c_b)
     T_wb = np.eye(4) if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
+    cov_wb = np.zeros((6, 6)) if cov_T_w_b is None else np.asarray(cov_T_w_b, dtype=np.float64)
+    Ad = adjoint(invert_T(T_b_k))  # δ of T_w_b seen in T_w_track's local frame
+    cov_wk = Ad @ cov_wb @ Ad.T + cov[6:, 6:]
+    per_view = problem.split(r)
+    rms_v = np.array([float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) for e in per_view])
     return HandEyeResult(
-        M_cr, T_b_k, T_wb @ T_b_k, problem.rms(M_cr, T_b_k), initial, rot_res, trans_res
-    )
+        M_cr, T_b_k, T_wb @ T_b_k, problem.rms(M_cr, T_b_k), initial, rot_res, trans_res,
+        cov, cov_wk, rms_v, per_view,
+    )  # fmt: skip
+
+
+CAMERA_KEYS = ("fx", "fy", "skew", "u0", "v0", "k1", "k2", "p1", "p2", "k3")
+CAMERA_STEPS = (1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7)
+
+
+def _camera_term(
+    problem: _Problem, M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray, cam_cov: FloatArray
+) -> FloatArray:
+    """Covariance the camera's uncertainty adds: x moves by −(JᵀJ)⁻¹Jᵀ J_θ δθ."""
+    base = problem.camera
+    r0 = problem.residuals(M_cr, T_b_k)
+    J_theta = np.zeros((r0.size, len(CAMERA_KEYS)))
+    for j, (key, step) in enumerate(zip(CAMERA_KEYS, CAMERA_STEPS, strict=True)):
+        if cam_cov[j, j] <= 0.0:
+            continue
+        problem.camera = dataclasses.replace(base, **{key: getattr(base, key) + step})
+        J_theta[:, j] = (problem.residuals(M_cr, T_b_k) - r0) / step
+    problem.camera = base
+    A = -np.linalg.pinv(J.T @ J) @ J.T @ J_theta
+    out: FloatArray = A @ cam_cov @ A.T
+    return out
+
+
+def adjoint(T: FloatArray) -> FloatArray:
+    """6×6 adjoint of T = (R, p) on local perturbations (ω, t): T·exp(δ)·T⁻¹ = exp(Ad δ).
+
+    A·exp(δ)·B = A·B·exp(Ad(B⁻¹) δ), so a perturbation of a left factor moves to the right end.
+    """
+    R, p = T[:3, :3], T[:3, 3]
+    px = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+    out = np.zeros((6, 6))
+    out[:3, :3] = R
+    out[3:, 3:] = R
+    out[3:, :3] = px @ R
+    return out
 
 
 def _closed_form(T_c_b: list[FloatArray], T_k_r: list[FloatArray]) -> tuple[FloatArray, FloatArray]:
@@ -128,6 +192,7 @@ class _Problem:
         self.T_r_k = [invert_T(T) for T in T_k_r]
         self.X = [np.asarray(v.object_points, dtype=np.float64) for v in views]
         self.uv = np.concatenate([np.asarray(v.image_points, dtype=np.float64) for v in views])
+        self.offsets = np.concatenate([[0], np.cumsum([2 * len(x) for x in self.X])])
 
     def residuals(self, M_cr: FloatArray, T_b_k: FloatArray) -> FloatArray:
         """Stacked pixel residuals of all views (2·ΣN,)."""
@@ -145,34 +210,25 @@ class _Problem:
         return float(np.sqrt(2.0 * np.mean(r * r)))
 
     def refine(self, M_cr: FloatArray, T_b_k: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Levenberg-Marquardt with a forward-difference Jacobian in local coordinates."""
-        r = self.residuals(M_cr, T_b_k)
-        cost, lam = float(r @ r), LM_LAMBDA0
-        for _ in range(LM_ITERATIONS):
-            J = self._jacobian(M_cr, T_b_k, r)
-            H, g = J.T @ J, J.T @ r
-            d = np.asarray(np.linalg.solve(H + lam * np.diag(np.diag(H)), -g), dtype=np.float64)
-            M_new, T_new = _perturb(M_cr, d[:6]), _perturb(T_b_k, d[6:])
-            r_new = self.residuals(M_new, T_new)
-            c_new = float(r_new @ r_new)
-            if c_new < cost:
-                done = cost - c_new < LM_TOL * cost
-                M_cr, T_b_k, r, cost, lam = M_new, T_new, r_new, c_new, lam * 0.3
-                if done:
-                    break
-            else:
-                lam *= 10.0
-        return M_cr, T_b_k
+        """Levenberg-Marquardt in local coordinates around the closed-form start."""
 
-    def _jacobian(self, M_cr: FloatArray, T_b_k: FloatArray, r0: FloatArray) -> FloatArray:
-        """Forward differences over the 12 local parameters."""
-        J = np.empty((r0.size, 12))
-        for j in range(12):
-            d = np.zeros(12)
-            d[j] = LM_STEP
-            rj = self.residuals(_perturb(M_cr, d[:6]), _perturb(T_b_k, d[6:]))
-            J[:, j] = (rj - r0) / LM_STEP
-        return J
+        def fn(x: FloatArray) -> FloatArray:
+            return self.residuals(_perturb(M_cr, x[:6]), _perturb(T_b_k, x[6:]))
+
+        sol = lsq.solve(fn, np.zeros(12), lsq.forward_jacobian(fn, np.full(12, LM_STEP)))
+        return _perturb(M_cr, sol.x[:6]), _perturb(T_b_k, sol.x[6:])
+
+    def jacobian(self, M_cr: FloatArray, T_b_k: FloatArray, r0: FloatArray) -> FloatArray:
+        """Forward differences over the 12 local parameters at (M_cr, T_b_k)."""
+
+        def fn(x: FloatArray) -> FloatArray:
+            return self.residuals(_perturb(M_cr, x[:6]), _perturb(T_b_k, x[6:]))
+
+        return lsq.forward_jacobian(fn, np.full(12, LM_STEP))(np.zeros(12), r0)
+
+    def split(self, r: FloatArray) -> list[FloatArray]:
+        """Flat residuals back into per-view (N,2) arrays."""
+        return [r[self.offsets[i] : self.offsets[i + 1]].reshape(-1, 2) for i in range(len(self.X))]
 
 
 def _pose_residuals(

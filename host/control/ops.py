@@ -72,6 +72,7 @@ class OpContext:
     tilt_limits_rad: tuple[float, float] = (-math.pi / 2, math.pi / 2)
     watchdog_ms: int | None = None  # the controller's WATCHDOG_MS, once read or written here
     control_stats: Callable[[], Mapping[str, Any]] = dict  # the control server's counters
+    commissioning: Any = None  # host.commissioning.env.CommissioningEnv (docs/COMMISSIONING.md)
 
 
 Handler = Callable[[OpContext, Mapping[str, Any]], Awaitable[Any]]
@@ -170,6 +171,7 @@ async def op_estop(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
 async def _safety(ctx: OpContext, op: str) -> dict[str, Any]:
     """Send stop/estop, or explain who stops the trolley when it cannot be sent."""
+    cancel_runs(ctx, op.upper())  # first, so a calibration run cannot command a motion after it
     controller = ctx.controller
     watchdog_ms, known = _watchdog_ms(ctx)
     detail: dict[str, Any] = {"sent": False, "acked": False, "watchdog_ms": watchdog_ms}
@@ -270,6 +272,15 @@ OPS: dict[str, tuple[Handler, Role]] = {
     "param_persist": (op_param_persist, Role.OPERATOR),
 }
 
+# The commissioning runs (calibrate_*, survey_*): their own module, joined to the table here.
+from host.commissioning.ops import COMMISSIONING_OPS, cancel_runs  # noqa: E402
+
+OPS.update(
+    {
+        name: (handler, Role.OPERATOR if operator else Role.VIEWER)
+        for name, (handler, operator) in COMMISSIONING_OPS.items()
+    }
+)
 
 async def dispatch(ctx: OpContext, role: Role, op: Any, args: Any) -> dict[str, Any]:
     """Run one op for a caller of `role`: {"ok": true, "result"} or {"ok": false, "error"}."""

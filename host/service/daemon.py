@@ -18,6 +18,7 @@ from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from host.commissioning.env import CommissioningEnv
 from host.config import Config, load_config
 from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
@@ -68,6 +69,7 @@ class Daemon:
         config_path: str | Path | None = None,
         notifier: Notifier | None = None,
         calibration: CalibrationProvider | None = None,
+        commissioning: CommissioningEnv | None = None,
     ) -> None:
         self.config = config
         self.calibration = calibration or self._config_calibration
@@ -88,6 +90,12 @@ class Daemon:
             if frame_loop_factory
             else None
         )
+        # Calibration runs see the frame loop's camera through its tap (docs/COMMISSIONING.md).
+        self.commissioning = commissioning or CommissioningEnv.for_daemon(
+            config, lambda: getattr(self.frame_loop, "frame_tap", None)
+        )
+        if self.commissioning.after_write is None:  # a calibration's result takes effect now
+            self.commissioning.after_write = self.reload
         self.server = ControlServer(self._op_context(), config.control)
         self._stop = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -154,6 +162,8 @@ class Daemon:
             "bus": self.bus.stats() if self.bus is not None else None,
             "recording": str(self.recorder.current) if self.recorder else None,
             "output_errors": self.output_errors,
+            # the error budget at the current pose (docs/COMMISSIONING.md), None when unknown
+            "overlay_sigma_px": self.commissioning.overlay_sigma_px(self.controller.snapshot()),
         }
 
     async def reload(self) -> list[str]:
@@ -231,6 +241,7 @@ class Daemon:
         """Controlled stop of the trolley, then close everything, within about 2 s."""
         self.phase = Phase.STOPPING
         self.notifier.stopping("stopping: halting the trolley")
+        await self.commissioning.jobs.aclose()  # a run cut short writes nothing
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -374,6 +385,7 @@ class Daemon:
             calibration=lambda: self.calibration(),
             pan_limits_rad=(head.pan_min_rad, head.pan_max_rad),
             tilt_limits_rad=(head.tilt_min_rad, head.tilt_max_rad),
+            commissioning=self.commissioning,
         )
 
     def _config_calibration(self) -> dict[str, Any]:

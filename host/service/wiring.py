@@ -17,6 +17,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from host.commissioning.frames import FrameTap
 from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
@@ -506,7 +507,8 @@ class CameraPoseLoop:
         record_tap: RecordTap,
         feed: PoseFeed | None = None,
     ) -> None:
-        self.source = source
+        self.frame_tap = FrameTap(source)  # the newest frame, for calibration runs
+        self.source: FrameSource = self.frame_tap
         self.registrar = registrar
         self.feed = feed
         self.rig: RigSpec | None = None  # the rig file's content the frames are registered with
@@ -514,7 +516,7 @@ class CameraPoseLoop:
         self.sink = sink
         self.record_tap = record_tap
         self.unregistered = 0  # frames whose exposure had no usable pose
-        self.loop: FrameLoop[Registration] = FrameLoop(source, registrar, [self._publish])
+        self.loop: FrameLoop[Registration] = FrameLoop(self.source, registrar, [self._publish])
         self._meter = RateMeter()
 
     @property

@@ -1,0 +1,225 @@
+"""`orbitar calibrate ...` and `orbitar survey ...`: commissioning runs on the running daemon.
+
+Each subcommand sends its request over the control socket, redraws the run's progress (views
+and the X/Y/size/skew coverage bars) until it ends, then prints the verdict, the short table
+and the report's path. Exit 0 when the run passed, 1 when it failed, could not start or was
+interrupted (Ctrl-C cancels the run in the daemon; nothing is written).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+from typing import Any, TextIO
+
+from host.calibration.board import BoardSpec
+from host.commissioning import coverage
+from host.commissioning.client import RunFailedError, run_op
+from host.control.cli_commands import default_socket, emit
+from host.control.client import ControlClient, ControlRequestError
+
+CLEAR_LINE = "\x1b[2K\r"
+
+
+def add_parsers(subparsers: Any) -> None:
+    """Register `calibrate` (and its subcommands)."""
+    cal = subparsers.add_parser(
+        "calibrate", help="commissioning: calibrate the rig through the daemon"
+    )
+    sub = cal.add_subparsers(dest="calibrate_command", required=True)
+    intr = _common(sub.add_parser("intrinsics", help="camera intrinsics from a board in view"))
+    _board_args(intr)
+    intr.add_argument("--full-distortion", action="store_true", help="also solve p1, p2, k3")
+    intr.add_argument("--max-rms", type=float, help="pass threshold, px (default 0.5)")
+    intr.add_argument("--min-views", type=int, help="views needed (default 10)")
+    intr.set_defaults(handler=run_intrinsics)
+    head = _common(
+        sub.add_parser("head", help="M_cr and the track placement from a surveyed board")
+    )
+    _board_args(head, centre=False)
+    _pose_args(head)
+    head.set_defaults(handler=lambda a: run_posed(a, "calibrate_head"))
+    check = _common(
+        sub.add_parser("check", help="acceptance test: predicted against measured corners")
+    )
+    _board_args(check, centre=False)
+    _pose_args(check)
+    check.add_argument("--max-rms", type=float, help="pass threshold, px (default 1.0)")
+    check.set_defaults(handler=lambda a: run_posed(a, "calibrate_check"))
+
+
+def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    p.add_argument("--socket", default=default_socket(), help="daemon control socket")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.add_argument("--no-write", action="store_true", help="report only, leave the rig file alone")
+    p.add_argument("--speed", type=float, help="trolley speed between stations, mm/s")
+    return p
+
+
+def _pose_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board-pose", required=True, metavar="FILE",
+                   help="the board's surveyed world pose: a JSON 4×4 matrix (mm)")  # fmt: skip
+    p.add_argument("--board-sigma-mm", type=float, default=1.0, help="survey σ of its position")
+    p.add_argument("--board-sigma-mrad", type=float, default=1.0, help="survey σ of its attitude")
+
+
+def _board_args(p: argparse.ArgumentParser, centre: bool = True) -> None:
+    base = BoardSpec()
+    where = "where the board's centre is in the world, mm (a tape measure is enough)"
+    if centre:
+        xyz = ("X", "Y", "Z")
+        p.add_argument(
+            "--board-centre", type=float, nargs=3, required=True, metavar=xyz, help=where
+        )
+    p.add_argument("--stations", type=float, nargs="+", metavar="S_MM",
+                   help="arc lengths to view from (default: where the trolley is)")  # fmt: skip
+    p.add_argument(
+        "--squares", default=f"{base.squares_x}x{base.squares_y}", help="board squares, COLSxROWS"
+    )
+    p.add_argument("--square-mm", type=float, default=base.square_mm, help="square edge, mm")
+    p.add_argument("--marker-mm", type=float, default=base.marker_mm, help="marker edge, mm")
+    p.add_argument("--dictionary", default=base.dictionary, help="ArUco dictionary")
+
+
+def board_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The board map of the request (ValueError names a bad --squares)."""
+    try:
+        cols, rows = (int(x) for x in args.squares.lower().split("x"))
+    except ValueError as exc:
+        raise ValueError(f"--squares {args.squares!r}: expected COLSxROWS, e.g. 9x7") from exc
+    spec = BoardSpec(cols, rows, args.square_mm, args.marker_mm, args.dictionary)
+    return spec.to_dict()
+
+
+def run_intrinsics(args: argparse.Namespace) -> int:
+    """`orbitar calibrate intrinsics`."""
+    try:
+        req: dict[str, Any] = {
+            "board_centre_mm": list(args.board_centre),
+            "board": board_from_args(args),
+        }
+    except ValueError as exc:
+        return _fail(str(exc))
+    if args.stations:
+        req["stations_mm"] = list(args.stations)
+    for key, value in (
+        ("max_rms_px", args.max_rms),
+        ("min_views", args.min_views),
+        ("speed_mm_s", args.speed),
+    ):
+        if value is not None:
+            req[key] = value
+    req["write"] = not args.no_write
+    req["full_distortion"] = args.full_distortion
+    return follow(args, "calibrate_intrinsics", req)
+
+
+def run_posed(args: argparse.Namespace, op: str) -> int:
+    """`orbitar calibrate head` / `check`: the board pose from its survey file."""
+    try:
+        with open(args.board_pose, encoding="utf-8") as f:
+            pose = json.load(f)
+        req: dict[str, Any] = {"board_pose": pose, "board": board_from_args(args)}
+    except (OSError, ValueError) as exc:
+        return _fail(f"--board-pose {args.board_pose}: {exc}")
+    req["board_sigma_mm"] = args.board_sigma_mm
+    req["board_sigma_rad"] = args.board_sigma_mrad / 1000.0
+    if args.stations:
+        req["stations_mm"] = list(args.stations)
+    if args.speed is not None:
+        req["speed_mm_s"] = args.speed
+    if getattr(args, "max_rms", None) is not None:
+        req["max_rms_px"] = args.max_rms
+    req["write"] = not args.no_write
+    return follow(args, op, req)
+
+
+def follow(args: argparse.Namespace, op: str, req: dict[str, Any]) -> int:
+    """Run `op` to its end with live progress; print and return the exit code."""
+    view = ProgressView(sys.stderr)
+    try:
+        result = asyncio.run(_follow(args.socket, op, req, view))
+    except KeyboardInterrupt:
+        return _fail("interrupted: the run was cancelled, nothing written")
+    except (ConnectionError, FileNotFoundError) as exc:
+        return _fail(f"daemon not running? cannot reach {args.socket}: {exc}")
+    except ControlRequestError as exc:
+        return _fail(f"{op} refused: {exc}")
+    except RunFailedError as exc:
+        return _fail(str(exc))
+    finally:
+        view.finish()
+    if args.json:
+        emit(json.dumps(result, indent=2, default=str) + "\n")
+    else:
+        emit(result_text(result))
+    return 0 if result.get("passed") else 1
+
+
+async def _follow(path: str, op: str, req: dict[str, Any], view: ProgressView) -> dict[str, Any]:
+    async with await ControlClient.connect_unix(path) as client:
+        return await run_op(client, op, req, view.show)
+
+
+def result_text(result: dict[str, Any]) -> str:
+    """Verdict, reasons, table, coverage, where the report and the result went."""
+    lines = ["PASS" if result.get("passed") else "FAIL"]
+    lines += [f"  {r}" for r in result.get("reasons", [])]
+    if result.get("table"):
+        lines += ["", result["table"]]
+    if result.get("coverage"):
+        lines += ["", coverage.bars(result["coverage"])]
+    lines.append("")
+    lines.append(f"report: {result.get('report')}")
+    written = result.get("written")
+    if written:
+        lines.append(f"written to {written} (previous version kept as a .bak)")
+    elif result.get("passed"):
+        lines.append("not written (--no-write, or the daemon has no rig file)")
+    else:
+        lines.append("nothing written")
+    return "\n".join(lines) + "\n"
+
+
+class ProgressView:
+    """Progress on stderr: redrawn on a terminal, one line per view otherwise."""
+
+    def __init__(self, out: TextIO) -> None:
+        self.out = out
+        self.tty = out.isatty()
+        self._last: tuple[Any, ...] = ()
+        self._lines = 0
+
+    def show(self, p: dict[str, Any]) -> None:
+        """Draw one progress map."""
+        key = (p.get("phase"), p.get("view"), p.get("accepted"))
+        if key == self._last:
+            return
+        self._last = key
+        head = (
+            f"{p.get('phase', '?')}: view {p.get('view', 0)}/{p.get('of', p.get('planned', '?'))}"
+        )
+        counts = (p.get("accepted", 0), p.get("blurred", 0), p.get("not_found", 0))
+        head += "  kept {}  blurred {}  no board {}".format(*counts)
+        if not self.tty:
+            cov = p.get("coverage") or {}
+            bars = " ".join(f"{k} {cov[k]:.2f}" for k in coverage.PARAMS if k in cov)
+            self.out.write(head + (f"  coverage {bars}" if bars else "") + "\n")
+            return
+        text = head + "\n" + coverage.bars(p.get("coverage") or {}) + "\n"
+        if self._lines:
+            self.out.write(f"\x1b[{self._lines}A")
+        self.out.write("".join(CLEAR_LINE + line + "\n" for line in text.splitlines()))
+        self._lines = text.count("\n")
+        self.out.flush()
+
+    def finish(self) -> None:
+        """Nothing to close: the bars stay on screen."""
+        self.out.flush()
+
+
+def _fail(message: str) -> int:
+    print(f"orbitar: {message}", file=sys.stderr)
+    return 1

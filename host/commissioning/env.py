@@ -1,0 +1,140 @@
+"""What a commissioning run needs from the daemon: camera frames, the rig, where to write.
+
+The daemon builds one `CommissioningEnv` and hands it to the control ops. `kinematics` gives
+the rig as the daemon knows it now (the rig file if there is one, else the config): the plan
+aims with it and the calibration starts from it. `rig_path` is the file a passing calibration
+updates (atomically, keeping a backup: host.rig.update_rig); without one a run reports but
+writes nothing. Reports go to `report_root`.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from host.commissioning.frames import FrameTap
+from host.commissioning.jobs import JobBoard
+from host.experiments.budget import BudgetInputs, inputs_from_rig, overlay_sigma
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.model import load_model, manipulator_wireframe
+from host.geometry.transforms import FloatArray
+from host.rig import RigSpec, build_camera, build_kinematics, load_rig
+from host.rig.store import current_rig
+
+if TYPE_CHECKING:
+    from host.config import Config
+
+log = logging.getLogger(__name__)
+
+DEFAULT_REPORT_ROOT = Path("orbitar-commissioning")
+BUILTIN_MODEL = "builtin:manipulator"
+REPORT_DIR = "commissioning"  # beside the rig file
+
+
+def _no_frames() -> FrameTap | None:
+    return None
+
+
+def _default_kinematics() -> tuple[Rig, CameraModel]:
+    return Rig(), CameraModel()
+
+
+def _no_home() -> float:
+    return 0.0
+
+
+def _no_camera_cov() -> FloatArray | None:
+    return None
+
+
+def _no_budget() -> tuple[BudgetInputs, FloatArray] | None:
+    return None
+
+
+@dataclass
+class CommissioningEnv:
+    """The daemon's side of a commissioning run."""
+
+    frames: Callable[[], FrameTap | None] = _no_frames
+    kinematics: Callable[[], tuple[Rig, CameraModel]] = _default_kinematics
+    rig_path: Path | None = None
+    report_root: Path = DEFAULT_REPORT_ROOT
+    jobs: JobBoard = field(default_factory=JobBoard)
+    home_s_mm: Callable[[], float] = _no_home  # track arc length of the controller's zero
+    # 10×10 covariance of the camera in use (host.rig.INTRINSIC_KEYS order), None if unknown
+    camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
+    # the error budget's inputs and the model points it is evaluated on (None: no budget)
+    budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
+    # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
+    after_write: Callable[[], Awaitable[Any]] | None = None
+
+    def overlay_sigma_px(self, snapshot: Mapping[str, Any]) -> float | None:
+        """Predicted overlay σ at the controller's current pose; None when unknown (logged)."""
+        pos, head = snapshot.get("position_mm"), snapshot.get("head_rad")
+        if pos is None or not head:
+            return None
+        try:
+            got = self.budget()
+            if got is None:
+                return None
+            inputs, points = got
+            s_mm = float(pos) + self.home_s_mm()
+            b = overlay_sigma(inputs, s_mm, float(head[0]), float(head[1]), points)
+        except Exception as exc:  # a status must never fail on a bad rig file
+            log.warning("overlay budget unavailable", extra={"kv": {"error": exc}})
+            return None
+        return round(b.sigma_px, 3) if np.isfinite(b.sigma_px) else None
+
+    @classmethod
+    def for_rig(
+        cls,
+        load: Callable[[], RigSpec],
+        path: Path | None,
+        frames: Callable[[], FrameTap | None],
+        report_root: Path,
+    ) -> CommissioningEnv:
+        """An env reading its rig through `load` for every run (so runs build on each other)."""
+
+        def kinematics() -> tuple[Rig, CameraModel]:
+            spec = load()
+            return build_kinematics(spec), build_camera(spec)
+
+        def home() -> float:
+            return float(load().track.home.value)
+
+        def camera_cov() -> FloatArray:
+            intr = load().camera.intrinsics
+            if intr.covariance is not None:
+                return np.array(intr.covariance, dtype=np.float64)
+            return np.diag(np.square(intr.sigma))
+
+        def budget() -> tuple[BudgetInputs, FloatArray]:
+            spec = load()
+            model = spec.workpiece.model
+            wire = manipulator_wireframe() if model == BUILTIN_MODEL else load_model(model)
+            return inputs_from_rig(spec), wire.vertices
+
+        return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov,
+                   budget=budget)  # fmt: skip
+
+    @classmethod
+    def for_rig_file(
+        cls, path: Path, frames: Callable[[], FrameTap | None], report_root: Path
+    ) -> CommissioningEnv:
+        """An env on a rig file, read fresh for every run."""
+        return cls.for_rig(lambda: load_rig(path), path, frames, report_root)
+
+    @classmethod
+    def for_daemon(cls, config: Config, frames: Callable[[], FrameTap | None]) -> CommissioningEnv:
+        """The daemon's: its `[rig] path` (written by passing runs; reports beside it), or the
+        paper's nominal rig when the path is empty (runs report, nothing is written)."""
+        if not config.rig.path:
+            return cls.for_rig(RigSpec, None, frames, DEFAULT_REPORT_ROOT)
+        path = Path(config.rig.path)
+        return cls.for_rig(lambda: current_rig(path), path, frames, path.parent / REPORT_DIR)

@@ -1,0 +1,110 @@
+"""Driving the rig for a commissioning run: go to a planned view, wait until still, take a frame.
+
+Every motion goes through the daemon's controller, like any operator command; before each one
+the run checks the controller's state, and a latched e-stop or fault ends the run at once (a STOP
+also cancels the run: host/commissioning/jobs.py). "Still" means the trolley is within
+`POSITION_TOL_MM` of its target and READY, the head's reported angles are within
+`HEAD_TOL_RAD` of the command, and `SETTLE_S` has passed for the ring-down; the frame taken is
+one stamped after that, plus a margin for a camera that stamps at delivery.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from host.commissioning.frames import FrameTap, wait_frame
+from host.commissioning.plan import ViewTarget
+from host.control.api import ControllerLike
+from host.frames.sources import Frame
+
+POSITION_TOL_MM = 0.5
+HEAD_TOL_RAD = 2e-3
+SETTLE_S = 0.3
+POLL_S = 0.02
+MOVE_TIMEOUT_S = 60.0
+HEAD_TIMEOUT_S = 15.0
+FRAME_TIMEOUT_S = 5.0
+STAMP_MARGIN_S = 0.1  # a frame stamped this long after rest was exposed after it, even at delivery
+TRAVEL_SPEED_MM_S = 400.0
+HALTED_STATES = ("ESTOP", "FAULT")
+
+
+class AbortedError(RuntimeError):
+    """The rig cannot carry on (e-stop, fault, link down, not homed, a timeout)."""
+
+
+@dataclass
+class RigIO:
+    """Motion and frames for a run, on the daemon's controller and camera."""
+
+    controller: ControllerLike
+    frames: FrameTap
+    speed_mm_s: float = TRAVEL_SPEED_MM_S
+    settle_s: float = SETTLE_S
+    home_s_mm: float = 0.0  # plans speak track arc length; the controller, its own zero
+
+    def s_mm(self, snap: Mapping[str, Any]) -> float | None:
+        """Track arc length of the trolley in a snapshot (encoder plus the surveyed home)."""
+        pos = snap.get("position_mm")
+        return None if pos is None else float(pos) + self.home_s_mm
+
+    def snapshot(self) -> Mapping[str, Any]:
+        """The controller's state; AbortedError if motion must not go on."""
+        if not self.controller.connected:
+            raise AbortedError("the controller link is down")
+        snap = self.controller.snapshot()
+        state = str(snap.get("state", "UNKNOWN"))
+        if state in HALTED_STATES:
+            raise AbortedError(f"controller is in {state}")
+        return snap
+
+    async def go(self, view: ViewTarget) -> None:
+        """Trolley to the view's station (if not there), head to its angles, then settle."""
+        position = self.snapshot().get("position_mm")
+        if position is None or abs(float(position) - view.s_mm) > POSITION_TOL_MM:
+            await self.controller.move_to(view.s_mm, self.speed_mm_s)
+            await self._until(
+                lambda s: _at(s, view.s_mm), MOVE_TIMEOUT_S, f"trolley to {view.s_mm:.0f} mm"
+            )
+        self.snapshot()
+        await self.controller.set_head(view.pan_rad, view.tilt_rad)
+        await self._until(lambda s: _head_at(s, view), HEAD_TIMEOUT_S, "head to its angles")
+        await asyncio.sleep(self.settle_s)
+
+    async def grab(self) -> Frame:
+        """A frame exposed after the rig came to rest."""
+        after_ns = time.monotonic_ns() + round(STAMP_MARGIN_S * 1e9)
+        return await wait_frame(self.frames, after_ns, FRAME_TIMEOUT_S)
+
+    async def _until(self, ok: Any, timeout_s: float, what: str) -> None:
+        """Poll the snapshot until ok(snapshot); AbortedError on halt or timeout."""
+        deadline = time.monotonic() + timeout_s
+        while not ok(self.snapshot()):
+            if time.monotonic() > deadline:
+                raise AbortedError(f"{what}: not reached within {timeout_s:.0f} s")
+            await asyncio.sleep(POLL_S)
+
+
+def _at(snap: Mapping[str, Any], s_mm: float) -> bool:
+    """Trolley at rest at s_mm."""
+    pos = snap.get("position_mm")
+    return (
+        pos is not None
+        and abs(float(pos) - s_mm) <= POSITION_TOL_MM
+        and snap.get("state") == "READY"
+    )
+
+
+def _head_at(snap: Mapping[str, Any], view: ViewTarget) -> bool:
+    """Head angles reported within tolerance of the view's."""
+    head = snap.get("head_rad")
+    if not head:
+        return False
+    dp = math.remainder(float(head[0]) - view.pan_rad, math.tau)
+    dt = math.remainder(float(head[1]) - view.tilt_rad, math.tau)
+    return abs(dp) <= HEAD_TOL_RAD and abs(dt) <= HEAD_TOL_RAD

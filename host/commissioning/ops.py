@@ -1,0 +1,264 @@
+"""The commissioning operations of the control socket (docs/COMMISSIONING.md).
+
+`calibrate_intrinsics` (and the other calibrations) start a run in the daemon and return its id
+at once; `commissioning_status` shows its progress (views, coverage bars) and, when it is over,
+its verdict and result; `commissioning_cancel` ends it, as any STOP or ESTOP does. Arguments are
+checked before anything moves, with the key named in the error. `COMMISSIONING_OPS` joins
+host.control.ops.OPS.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from host.calibration.board import BoardDetector, BoardSpec
+from host.commissioning import head_run, intrinsics_run
+from host.commissioning.env import CommissioningEnv
+from host.commissioning.jobs import JobBusyError, Progress
+from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
+from host.commissioning.plan import IMAGE_TARGETS, board_plan
+from host.commissioning.report import Page, run_dir, write_page
+from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError
+from host.geometry.transforms import FloatArray
+from host.rig import update_rig
+
+MAX_STATIONS = 64
+MAX_ABS_MM = 1e6
+
+
+def env_of(ctx: OpContext) -> CommissioningEnv:
+    """The daemon's commissioning environment (`unavailable` if it has none)."""
+    env = getattr(ctx, "commissioning", None)
+    if not isinstance(env, CommissioningEnv):
+        raise OpError("unavailable", "this daemon has no commissioning support configured")
+    return env
+
+
+def vector3(args: Mapping[str, Any], key: str) -> np.ndarray:
+    """A finite [x, y, z] argument in mm."""
+    v = args.get(key)
+    ok = isinstance(v, list | tuple) and len(v) == 3
+    if not ok or not all(_finite(x) and abs(x) < MAX_ABS_MM for x in v):  # type: ignore[union-attr]
+        raise OpError("bad_args", f"{key} = {v!r}: expected [x, y, z] in mm, finite")
+    return np.array(v, dtype=np.float64)
+
+
+def stations(args: Mapping[str, Any], ctx: OpContext) -> list[float]:
+    """`stations_mm`: arc lengths to view from (default: where the trolley is now)."""
+    v = args.get("stations_mm")
+    if v is None:
+        pos = ctx.controller.snapshot().get("position_mm") if ctx.controller else None
+        if pos is None:
+            raise OpError("bad_args", "stations_mm missing and the trolley position is unknown")
+        return [float(pos)]
+    if not isinstance(v, list) or not 1 <= len(v) <= MAX_STATIONS or not all(_finite(x) for x in v):
+        raise OpError(
+            "bad_args", f"stations_mm = {v!r}: expected 1-{MAX_STATIONS} finite arc lengths"
+        )
+    return [float(x) for x in v]
+
+
+def board_spec(args: Mapping[str, Any]) -> BoardSpec:
+    """`board`: the printed board's dimensions (default: BoardSpec())."""
+    v = args.get("board")
+    if v is None:
+        return BoardSpec()
+    if not isinstance(v, dict):
+        raise OpError("bad_args", f"board = {v!r}: expected a map of BoardSpec fields")
+    try:
+        return BoardSpec.from_dict(v)
+    except (TypeError, ValueError) as exc:
+        raise OpError("bad_args", str(exc)) from exc
+
+
+def thresholds(args: Mapping[str, Any]) -> intrinsics_run.Thresholds:
+    """Optional `max_rms_px` and `min_views` overrides of the stated thresholds."""
+    base = intrinsics_run.Thresholds()
+    rms = args.get("max_rms_px", base.max_rms_px)
+    views = args.get("min_views", base.min_views)
+    if not _finite(rms) or not 0.0 < rms <= 5.0:
+        raise OpError("bad_args", f"max_rms_px = {rms!r}: expected a number in (0, 5]")
+    if isinstance(views, bool) or not isinstance(views, int) or not 3 <= views <= 500:
+        raise OpError("bad_args", f"min_views = {views!r}: expected an integer in [3, 500]")
+    return intrinsics_run.Thresholds(
+        float(rms), views, base.max_rel_sigma_focal, base.max_sigma_centre_px
+    )
+
+
+async def op_calibrate_intrinsics(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start an intrinsics run: board_centre_mm (world, rough), stations_mm, board, write."""
+    centre = vector3(args, "board_centre_mm")
+    limits = thresholds(args)
+    full = bool(args.get("full_distortion", False))
+
+    def finish(
+        views: list[Any], rig: Any, camera: Any
+    ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        out = intrinsics_run.judge(views, camera, limits, full)
+        updates = intrinsics_run.rig_update(out) if out.passed else {}
+        return out.summary(), intrinsics_run.page(out, limits), updates
+
+    return _start_capture_run(ctx, args, "intrinsics", centre, finish)
+
+
+def board_pose(args: Mapping[str, Any]) -> tuple[FloatArray, FloatArray]:
+    """`board_pose` (4×4, world, surveyed) and its 6×6 local covariance from the σ given."""
+    v = args.get("board_pose")
+    try:
+        T = np.array(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        T = np.zeros(0)
+    if T.shape != (4, 4) or not np.isfinite(T).all() or not np.allclose(T[3], [0, 0, 0, 1]):
+        raise OpError("bad_args", f"board_pose = {v!r}: expected a 4×4 rigid transform (mm)")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise OpError("bad_args", "board_pose: its 3×3 block is not a rotation")
+    sig_mm = args.get("board_sigma_mm", 1.0)
+    sig_rad = args.get("board_sigma_rad", 1e-3)
+    if not _finite(sig_mm) or not _finite(sig_rad) or sig_mm < 0 or sig_rad < 0:
+        raise OpError("bad_args", "board_sigma_mm, board_sigma_rad: expected non-negative numbers")
+    cov = np.diag([sig_rad**2] * 3 + [sig_mm**2] * 3)
+    return T, cov
+
+
+def _start_capture_run(
+    ctx: OpContext, args: Mapping[str, Any], kind: str, centre: FloatArray,
+    finish: Any,
+) -> dict[str, Any]:  # fmt: skip
+    """Start a run that captures board views along a plan, then calls `finish` on them."""
+    env = env_of(ctx)
+    spec = board_spec(args)
+    where = stations(args, ctx)
+    speed = float(args.get("speed_mm_s", TRAVEL_SPEED_MM_S))
+    if not _finite(speed) or not 1.0 <= speed <= MAX_SPEED_MM_S:
+        raise OpError(
+            "bad_args", f"speed_mm_s = {args.get('speed_mm_s')!r}: expected 1-{MAX_SPEED_MM_S}"
+        )
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None:
+        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
+    controller = ctx.controller
+    head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        tap = env.frames()
+        if tap is None:
+            raise AbortedError("the camera went away")
+        rig, camera = env.kinematics()
+        plan = board_plan(rig, camera, centre, where, IMAGE_TARGETS, head_limits)
+        progress["planned"] = len(plan)
+        if not plan:
+            raise AbortedError("no view of the board can be planned from these stations")
+        io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
+        views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
+        progress["phase"] = "solving"
+        summary, page, updates = await asyncio.to_thread(finish, views, rig, camera)
+        report = await asyncio.to_thread(_write, env.report_root, kind, page)
+        written = None
+        if summary["passed"] and updates and bool(args.get("write", True)) and env.rig_path:
+            progress["phase"] = "writing"
+            await asyncio.to_thread(update_rig, env.rig_path, updates, f"calibrate {kind}")
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**summary, "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start(kind, run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a head run: board_pose (surveyed), stations_mm; solves M_cr and T_w_track."""
+    T_w_b, cov_b = board_pose(args)
+    spec = board_spec(args)
+    limits = head_run.HeadThresholds()
+
+    def finish(
+        views: list[Any], rig: Any, camera: Any
+    ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        out = head_run.judge_head(
+            views, rig, camera, T_w_b, cov_b, limits, env_of(ctx).camera_cov()
+        )
+        updates = head_run.head_rig_update(out, True) if out.passed else {}
+        return out.summary(), head_run.head_page(out, limits), updates
+
+    return _start_capture_run(
+        ctx, args, "head", (T_w_b @ np.append(spec.centre_mm, 1.0))[:3], finish
+    )
+
+
+async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start the acceptance test: predicted against measured corners from new poses."""
+    T_w_b, _ = board_pose(args)
+    spec = board_spec(args)
+    limit = args.get("max_rms_px", 1.0)
+    if not _finite(limit) or not 0.0 < limit <= 10.0:
+        raise OpError("bad_args", f"max_rms_px = {limit!r}: expected a number in (0, 10]")
+
+    def finish(
+        views: list[Any], rig: Any, camera: Any
+    ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        out = head_run.check_views(views, rig, camera, T_w_b, float(limit))
+        return out.summary(), head_run.check_page(out, float(limit)), {}
+
+    return _start_capture_run(
+        ctx, args, "check", (T_w_b @ np.append(spec.centre_mm, 1.0))[:3], finish
+    )
+
+
+def _write(root: Path, kind: str, page: Page) -> str:
+    """A run's report directory and page."""
+    return str(write_page(run_dir(root, kind), page))
+
+
+async def op_commissioning_status(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """The current (or last) run: state, progress and, when over, its result."""
+    env = env_of(ctx)
+    job_id = args.get("job")
+    if job_id is not None and (isinstance(job_id, bool) or not isinstance(job_id, int)):
+        raise OpError("bad_args", f"job = {job_id!r}: expected a run id")
+    job = env.jobs.get(job_id)
+    if job is None:
+        return {"state": "none"}
+    return job.status()
+
+
+async def op_commissioning_cancel(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Cancel the running run (nothing is written)."""
+    return {"cancelled": env_of(ctx).jobs.cancel_all("cancelled by a client")}
+
+
+def cancel_runs(ctx: OpContext, reason: str) -> None:
+    """Hook for STOP and ESTOP: end any run before the stop is sent."""
+    env = getattr(ctx, "commissioning", None)
+    if isinstance(env, CommissioningEnv):
+        env.jobs.cancel_all(reason)
+
+
+def _path(env: CommissioningEnv) -> str | None:
+    return None if env.rig_path is None else str(env.rig_path)
+
+
+def _finite(x: Any) -> bool:
+    return not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x)
+
+
+# op name → (handler, needs the operator role); merged into host.control.ops.OPS
+COMMISSIONING_OPS: dict[str, tuple[Handler, bool]] = {
+    "calibrate_intrinsics": (op_calibrate_intrinsics, True),
+    "calibrate_head": (op_calibrate_head, True),
+    "calibrate_check": (op_calibrate_check, True),
+    "commissioning_status": (op_commissioning_status, False),
+    "commissioning_cancel": (op_commissioning_cancel, True),
+}

@@ -1,0 +1,113 @@
+"""View plans: where to put the trolley and the head so a fixed board covers what a fit needs.
+
+The installer gives the board's rough pose in the world (a tape measure is enough: the plan
+only aims the head). From the nominal rig and camera, each station along the track gets head
+angles that put the board's centre at chosen places in the image (centre and four corners), so
+the views spread the board over the image; stations at different distances along the track
+vary its size and its tilt to the optical axis. The aiming is Newton's method on the board
+centre's pixel, two angles for two coordinates, started from `Rig.aim`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.transforms import FloatArray, transform_points
+
+AIM_STEPS = 8
+AIM_TOL_PX = 0.5
+DIFF_RAD = 1e-5
+# Where the board's centre goes, as fractions of the image (centre first: the easiest view).
+IMAGE_TARGETS = ((0.5, 0.5), (0.3, 0.3), (0.7, 0.3), (0.3, 0.7), (0.7, 0.7))
+
+
+@dataclass(frozen=True)
+class ViewTarget:
+    """One planned view: trolley arc length, head angles, and a label for the report."""
+
+    s_mm: float
+    pan_rad: float
+    tilt_rad: float
+    label: str
+
+    def as_dict(self) -> dict[str, float | str]:
+        """Plain values."""
+        return {
+            "s_mm": self.s_mm,
+            "pan_rad": self.pan_rad,
+            "tilt_rad": self.tilt_rad,
+            "label": self.label,
+        }
+
+
+def aim_at_pixel(
+    rig: Rig, camera: CameraModel, s_mm: float, point_w: FloatArray, target_uv: FloatArray
+) -> tuple[float, float] | None:
+    """Head angles putting a world point at a pixel (nominal rig); None if it cannot be done."""
+    pan, tilt = rig.aim(s_mm, point_w)
+    for _ in range(AIM_STEPS):
+        uv = _pixel(rig, camera, s_mm, pan, tilt, point_w)
+        if uv is None:
+            return None
+        err = uv - target_uv
+        if float(np.hypot(*err)) < AIM_TOL_PX:
+            return pan, tilt
+        du_pan = _pixel(rig, camera, s_mm, pan + DIFF_RAD, tilt, point_w)
+        du_tilt = _pixel(rig, camera, s_mm, pan, tilt + DIFF_RAD, point_w)
+        if du_pan is None or du_tilt is None:
+            return None
+        J = np.column_stack([(du_pan - uv) / DIFF_RAD, (du_tilt - uv) / DIFF_RAD])
+        try:
+            step = np.linalg.solve(J, -err)
+        except np.linalg.LinAlgError:
+            return None
+        pan, tilt = pan + float(step[0]), tilt + float(step[1])
+    final = _pixel(rig, camera, s_mm, pan, tilt, point_w)
+    ok = final is not None and float(np.hypot(*(final - target_uv))) < 10 * AIM_TOL_PX
+    return (pan, tilt) if ok else None
+
+
+def board_plan(
+    rig: Rig,
+    camera: CameraModel,
+    board_centre_w: FloatArray,
+    stations_mm: Sequence[float],
+    targets: Sequence[tuple[float, float]] = IMAGE_TARGETS,
+    limits: tuple[tuple[float, float], tuple[float, float]] | None = None,
+) -> list[ViewTarget]:
+    """Views of the board from each station at each image target, within the head's limits."""
+    plan = []
+    size = np.array([camera.width - 1.0, camera.height - 1.0])
+    for s in stations_mm:
+        for fx, fy in targets:
+            angles = aim_at_pixel(rig, camera, s, board_centre_w, size * np.array([fx, fy]))
+            if angles is None or not _within(angles, limits):
+                continue
+            plan.append(
+                ViewTarget(float(s), angles[0], angles[1], f"s={s:.0f} at ({fx:.1f}, {fy:.1f})")
+            )
+    return plan
+
+
+def _within(
+    angles: tuple[float, float], limits: tuple[tuple[float, float], tuple[float, float]] | None
+) -> bool:
+    """Inside the head's (pan, tilt) limits."""
+    if limits is None:
+        return True
+    (p0, p1), (t0, t1) = limits
+    return p0 <= angles[0] <= p1 and t0 <= angles[1] <= t1
+
+
+def _pixel(
+    rig: Rig, camera: CameraModel, s_mm: float, pan: float, tilt: float, point_w: FloatArray
+) -> FloatArray | None:
+    """Where the nominal rig sees a world point, None behind the camera."""
+    pc = transform_points(rig.T_c_w(s_mm, pan, tilt), np.asarray(point_w, dtype=np.float64))
+    uv, valid = camera.project(pc)
+    return uv if bool(valid) else None

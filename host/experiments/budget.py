@@ -1,0 +1,223 @@
+"""Error budget: the predicted σ of the overlay, in pixels, at any pose, from every input's σ.
+
+The overlay of a workpiece point X_p is u = π_θ(T_c_w(s, pan, tilt) · T_w_p · X_p) with
+
+    T_w_c = T_w_track·exp(δk) · T_track_t(s) · T_t_r · R_head(pan, tilt) · M_cr·exp(δm)
+
+Every calibrated quantity enters: the intrinsics θ (10, Table 1's and p1, p2, k3), M_cr and the
+track placement and the workpiece frame (local perturbations δ = (ω, t), as the rig file keeps
+their covariances), the arc length s (the chain filter's σ, plus clock-sync error × speed: a
+stamp off by δt puts the trolley v·δt away), and the head angles (their noise). First order:
+Σ_u = J Σ Jᵀ with J by central differences over all 31 inputs, so each source's share is its
+own block's J Σ Jᵀ. `monte_carlo` samples the same inputs through the same projection; the test
+holds the two together.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig, head_rotation
+from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R
+from host.rig import RigSpec, build_camera, build_kinematics, workpiece_pose
+
+CAMERA_KEYS = ("fx", "fy", "skew", "u0", "v0", "k1", "k2", "p1", "p2", "k3")
+SOURCES = ("intrinsics", "m_cr", "track", "workpiece", "arc_length", "head")
+SLICES = {
+    "intrinsics": slice(0, 10),
+    "m_cr": slice(10, 16),
+    "track": slice(16, 22),
+    "workpiece": slice(22, 28),
+    "arc_length": slice(28, 29),
+    "head": slice(29, 31),
+}
+N_INPUTS = 31
+STEPS = np.concatenate([
+    [1e-3] * 5, [1e-6] * 5,  # intrinsics: px, then distortion
+    [1e-7] * 3 + [1e-4] * 3, [1e-7] * 3 + [1e-4] * 3, [1e-7] * 3 + [1e-4] * 3,  # poses
+    [1e-4], [1e-7, 1e-7],  # s mm, head rad
+])  # fmt: skip
+
+
+def _zeros6() -> FloatArray:
+    return np.zeros((6, 6))
+
+
+@dataclass(frozen=True)
+class BudgetInputs:
+    """The rig as calibrated and the covariance of everything in it."""
+
+    rig: Rig
+    camera: CameraModel
+    T_w_p: FloatArray
+    camera_cov: FloatArray = field(default_factory=lambda: np.zeros((10, 10)))
+    m_cr_cov: FloatArray = field(default_factory=_zeros6)
+    track_cov: FloatArray = field(default_factory=_zeros6)
+    workpiece_cov: FloatArray = field(default_factory=_zeros6)
+    sigma_s_mm: float = 0.0  # the chain filter's σ of the arc length
+    sigma_head_rad: tuple[float, float] = (0.0, 0.0)  # pan, tilt noise
+    sigma_clock_s: float = 0.0  # clock-sync error of a frame's stamp
+    speed_mm_s: float = 0.0  # the trolley's speed (the clock error's lever)
+
+    def covariance(self) -> FloatArray:
+        """The 31×31 input covariance (block-diagonal between sources)."""
+        S = np.zeros((N_INPUTS, N_INPUTS))
+        S[SLICES["intrinsics"], SLICES["intrinsics"]] = self.camera_cov
+        S[SLICES["m_cr"], SLICES["m_cr"]] = self.m_cr_cov
+        S[SLICES["track"], SLICES["track"]] = self.track_cov
+        S[SLICES["workpiece"], SLICES["workpiece"]] = self.workpiece_cov
+        S[28, 28] = self.sigma_s_mm**2 + (self.sigma_clock_s * self.speed_mm_s) ** 2
+        S[29, 29], S[30, 30] = self.sigma_head_rad[0] ** 2, self.sigma_head_rad[1] ** 2
+        return S
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Predicted overlay error at one pose: total and per source, RMS over the points (px)."""
+
+    sigma_px: float
+    by_source_px: dict[str, float]
+    point_cov: FloatArray  # (N, 2, 2) per-point pixel covariance
+
+    def as_dict(self) -> dict[str, object]:
+        """Plain values (status, reports)."""
+        return {
+            "sigma_px": round(self.sigma_px, 4),
+            "by_source_px": {k: round(v, 4) for k, v in self.by_source_px.items()},
+        }
+
+
+def project(
+    inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray, d: FloatArray
+) -> FloatArray:
+    """Pixels (N,2) of workpiece points with every input perturbed by d (31,)."""
+    vals = {k: getattr(inputs.camera, k) + d[i] for i, k in enumerate(CAMERA_KEYS)}
+    cam = dataclasses.replace(inputs.camera, **vals)
+    rig = inputs.rig
+    T_w_k = rig.track.T_w_track @ _exp(d[16:22])
+    T_w_c = (T_w_k @ rig.track.local_pose(s_mm + d[28]) @ rig.T_t_r
+             @ head_rotation(pan + d[29], tilt + d[30]) @ rig.T_r_c @ _exp(d[10:16]))  # fmt: skip
+    T_w_p = inputs.T_w_p @ _exp(d[22:28])
+    uv, _ = cam.project_world(invert_T(T_w_c) @ T_w_p, points_p)
+    return uv
+
+
+def jacobian(
+    inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray
+) -> FloatArray:
+    """∂u/∂inputs (2N × 31) by central differences."""
+    J = np.empty((2 * len(points_p), N_INPUTS))
+    for j in range(N_INPUTS):
+        d = np.zeros(N_INPUTS)
+        d[j] = STEPS[j]
+        up = project(inputs, s_mm, pan, tilt, points_p, d).ravel()
+        dn = project(inputs, s_mm, pan, tilt, points_p, -d).ravel()
+        J[:, j] = (up - dn) / (2 * STEPS[j])
+    return J
+
+
+def overlay_sigma(
+    inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray
+) -> Budget:
+    """First-order predicted overlay σ at a pose (RMS over the points of the 2-D error)."""
+    pts = visible(inputs, s_mm, pan, tilt, points_p)
+    if len(pts) == 0:  # nothing of the model in view: no overlay to predict
+        return Budget(float("nan"), dict.fromkeys(SOURCES, float("nan")), np.zeros((0, 2, 2)))
+    J = jacobian(inputs, s_mm, pan, tilt, pts)
+    S = inputs.covariance()
+    total = _rms(J, S, len(pts))
+    by = {}
+    for name in SOURCES:
+        Sk = np.zeros_like(S)
+        Sk[SLICES[name], SLICES[name]] = S[SLICES[name], SLICES[name]]
+        by[name] = _rms(J, Sk, len(pts))
+    C = J @ S @ J.T
+    blocks = np.stack([C[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(len(pts))])
+    return Budget(total, by, blocks)
+
+
+def visible(
+    inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray
+) -> FloatArray:
+    """The points that land in the image (beyond it the lens model is not calibrated)."""
+    pts = np.asarray(points_p, dtype=np.float64).reshape(-1, 3)
+    uv = project(inputs, s_mm, pan, tilt, pts, np.zeros(N_INPUTS))
+    w, h = inputs.camera.width, inputs.camera.height
+    ok = (
+        np.isfinite(uv).all(axis=1)
+        & (uv[:, 0] >= 0)
+        & (uv[:, 0] < w)
+        & (uv[:, 1] >= 0)
+        & (uv[:, 1] < h)
+    )
+    out: FloatArray = pts[ok]
+    return out
+
+
+def monte_carlo(
+    inputs: BudgetInputs,
+    s_mm: float,
+    pan: float,
+    tilt: float,
+    points_p: FloatArray,
+    n: int,
+    seed: int,
+) -> float:
+    """σ of the overlay by sampling every input (RMS over points and samples)."""
+    pts = visible(inputs, s_mm, pan, tilt, points_p)
+    rng = np.random.default_rng(seed)
+    S = inputs.covariance()
+    L = _factor(S)
+    base = project(inputs, s_mm, pan, tilt, pts, np.zeros(N_INPUTS))
+    sq = 0.0
+    for _ in range(n):
+        d = L @ rng.standard_normal(N_INPUTS)
+        e = project(inputs, s_mm, pan, tilt, pts, d) - base
+        sq += float(np.mean(np.sum(e * e, axis=1)))
+    return float(np.sqrt(sq / n))
+
+
+def points_sigma(
+    inputs: BudgetInputs, poses: Sequence[tuple[float, float, float]], points_p: FloatArray
+) -> list[float]:
+    """Predicted σ at several (s, pan, tilt) poses."""
+    return [overlay_sigma(inputs, s, p, t, points_p).sigma_px for s, p, t in poses]
+
+
+def inputs_from_rig(spec: RigSpec, sigma_s_mm: float | None = None) -> BudgetInputs:
+    """The budget of a rig file: each block's covariance; the arc length's σ from its marks.
+
+    The rig file holds no head-angle noise and no clock-sync error (they are the controller's
+    and the link's, not calibrated values): they stay 0 here unless a caller sets them.
+    """
+    intr = spec.camera.intrinsics
+    cam_cov = (
+        np.array(intr.covariance) if intr.covariance is not None else np.diag(np.square(intr.sigma))
+    )
+    s_sig = spec.track.marks.sigma_mm if sigma_s_mm is None else sigma_s_mm
+    return BudgetInputs(
+        build_kinematics(spec), build_camera(spec), workpiece_pose(spec), cam_cov,
+        spec.head.m_cr.cov(), spec.track.placement.cov(), spec.workpiece.frame.cov(), s_sig,
+    )  # fmt: skip
+
+
+def _rms(J: FloatArray, S: FloatArray, n: int) -> float:
+    """sqrt(trace(J S Jᵀ) / n): the RMS over points of the 2-D error's σ."""
+    return float(np.sqrt(max(np.einsum("ij,jk,ik->", J, S, J), 0.0) / n))
+
+
+def _factor(S: FloatArray) -> FloatArray:
+    """A square root of a PSD matrix (eigen, so zero variances are fine)."""
+    w, V = np.linalg.eigh(S)
+    out: FloatArray = V * np.sqrt(np.clip(w, 0.0, None))
+    return out
+
+
+def _exp(d: FloatArray) -> FloatArray:
+    """Local perturbation (ω, t) as a transform (the rig file's convention)."""
+    return make_T(rotvec_to_R(d[:3]), d[3:6])

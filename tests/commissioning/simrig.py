@@ -1,0 +1,155 @@
+"""A daemon on a fake controller whose camera renders a board through a seeded true rig."""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil_sim.camera import FrameClock, PlacedBoard, SyntheticCamera
+from host.calibration.board import BoardSpec
+from host.commissioning.env import CommissioningEnv
+from host.commissioning.frames import FrameTap
+from host.config import Config, ControlConfig
+from host.control.client import ControlClient
+from host.control.fake import FakeController
+from host.frames.sources import Frame
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.transforms import euler_zyx, make_T, rot_x
+from host.rig import RigSpec, save_rig
+from host.service.daemon import Daemon
+
+FPS = 15.0
+BOARD = BoardSpec(squares_x=8, squares_y=6, square_mm=70.0, marker_mm=52.0)
+# On a stand 1.5 m above the floor, 0.4 m inside the runway's first straight (camera 4 m up).
+BOARD_CENTRE_W = np.array([-300.0, -1100.0, 1500.0])
+STATIONS_MM = [1700.0, 3000.0]
+
+
+def true_lens(rng: np.random.Generator) -> CameraModel:
+    """A lens off Table 1 by manufacturing tolerances."""
+    base = CameraModel()
+    return dataclasses.replace(
+        base,
+        fx=base.fx * (1 + rng.normal(0, 0.01)), fy=base.fy * (1 + rng.normal(0, 0.01)),
+        u0=base.u0 + rng.normal(0, 5), v0=base.v0 + rng.normal(0, 5),
+        skew=base.skew + rng.normal(0, 0.3), k1=base.k1 + rng.normal(0, 0.1),
+        k2=base.k2 + rng.normal(0, 0.3),
+    )  # fmt: skip
+
+
+def true_rig(rng: np.random.Generator) -> Rig:
+    """The nominal rig with M_cr off by a few mm and mrad."""
+    nominal = Rig()
+    dR = euler_zyx(*rng.normal(0, 3e-3, 3))
+    M = nominal.T_r_c.copy()
+    M[:3, :3] = M[:3, :3] @ dR
+    M[:3, 3] += rng.normal(0, 3.0, 3)
+    return Rig(track=nominal.track, T_r_c=M)
+
+
+def board_pose(rng: np.random.Generator) -> np.ndarray:
+    """The board face up (toward the camera above), turned a little, where the plan expects it."""
+    R = rot_x(np.pi) @ euler_zyx(rng.uniform(-0.3, 0.3), rng.normal(0, 0.05), rng.normal(0, 0.05))
+    return make_T(R, BOARD_CENTRE_W - R @ BOARD.centre_mm)
+
+
+@dataclass
+class SimBoardLoop:
+    """The daemon's frame loop: renders what the true camera sees, stamped at delivery."""
+
+    controller: FakeController
+    rig: Rig
+    camera: SyntheticCamera
+    board: PlacedBoard
+    clock: FrameClock
+    blur_mm: float = 0.0  # smear every frame by this much camera motion (a shaking mount)
+    home_s_mm: float = 150.0  # true arc length of the controller's zero (the rig file: 150 ± 1)
+    frame_tap: FrameTap = field(init=False)
+    frames: int = 0
+
+    def __post_init__(self) -> None:
+        self.frame_tap = FrameTap(self)
+
+    @property
+    def fps(self) -> float:
+        return FPS
+
+    def read(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+    async def run(self) -> None:
+        while True:
+            exposed_ns = time.monotonic_ns()
+            s = self.controller.position_mm + self.home_s_mm
+            pan, tilt = self.controller.head_rad
+            image = await asyncio.to_thread(self._render, s, pan, tilt)
+            self.frames += 1
+            stamp = self.clock.stamp_ns(exposed_ns)
+            await asyncio.sleep(max(0.0, (stamp - time.monotonic_ns()) / 1e9))
+            self.frame_tap.offer(Frame(self.frames, image, stamp, (s, pan, tilt)))
+            await asyncio.sleep(1.0 / FPS)
+
+    def _render(self, s: float, pan: float, tilt: float) -> np.ndarray:
+        T_w_c = self.rig.T_w_c(s, pan, tilt)
+        T_c_b = np.linalg.inv(T_w_c) @ self.board.T_w_b
+        end = None
+        if self.blur_mm:
+            end = T_c_b.copy()
+            end[0, 3] += self.blur_mm
+        return self.camera.render_board(T_c_b, self.board.board, end).image
+
+
+@dataclass
+class Harness:
+    """A running daemon, its client, the truth and the rig file."""
+
+    daemon: Daemon
+    client: ControlClient
+    loop: SimBoardLoop
+    lens: CameraModel
+    rig: Rig
+    rig_path: Path
+    report_root: Path
+
+    async def request(self, op: str, **args: Any) -> Any:
+        return await self.client.request(op, **args)
+
+
+@asynccontextmanager
+async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterator[Harness]:
+    """A daemon on the fake controller with the rendered board; yields once it serves."""
+    rng = np.random.default_rng(seed)
+    lens, rig = true_lens(rng), true_rig(rng)
+    placed = PlacedBoard(BOARD.make(), board_pose(rng))
+    fake = FakeController()
+    sim = SyntheticCamera(lens, seed=seed, blur_samples=4)
+    home = 150.0 + float(rng.normal(0.0, 0.3))  # surveyed to ~1 mm: RigSpec() says 150
+    loop = SimBoardLoop(fake, rig, sim, placed, FrameClock(seed=seed), blur_mm, home)
+    rig_path = tmp / "rig.toml"
+    save_rig(RigSpec(), rig_path)
+    env = CommissioningEnv.for_rig_file(rig_path, lambda: loop.frame_tap, tmp / "reports")
+    config = dataclasses.replace(Config(), control=ControlConfig(socket_path=str(tmp / "ctl.sock")))
+    daemon = Daemon(config, lambda c, t: fake, lambda c, ctl, sink, t: loop, commissioning=env)
+    task = asyncio.create_task(daemon.run())
+    try:
+        for _ in range(200):
+            if (tmp / "ctl.sock").exists():
+                break
+            await asyncio.sleep(0.02)
+        async with await ControlClient.connect_unix(str(tmp / "ctl.sock")) as client:
+            yield Harness(daemon, client, loop, lens, rig, rig_path, tmp / "reports")
+    finally:
+        daemon.request_stop()
+        await asyncio.wait_for(task, 10.0)
