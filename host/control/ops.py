@@ -282,6 +282,7 @@ OPS.update(
     }
 )
 
+
 async def dispatch(ctx: OpContext, role: Role, op: Any, args: Any) -> dict[str, Any]:
     """Run one op for a caller of `role`: {"ok": true, "result"} or {"ok": false, "error"}."""
     try:

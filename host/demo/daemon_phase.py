@@ -38,6 +38,7 @@ class RunningDaemon:
     daemon: Daemon
     socket_path: Path
     config_path: Path
+    rig_path: Path
 
     async def reload(self) -> list[str]:
         """What SIGHUP does: reread the config and the rig file; the sections applied."""
@@ -69,7 +70,7 @@ async def running_daemon(
     socket_path = workdir / SOCKET_NAME
     try:
         await _wait_for(socket_path, task)
-        yield RunningDaemon(daemon, socket_path, config_path)
+        yield RunningDaemon(daemon, socket_path, config_path, rig_path)
     finally:
         daemon.request_stop()
         with contextlib.suppress(Exception):

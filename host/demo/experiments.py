@@ -52,6 +52,7 @@ HEAD_TIMEOUT_S = 10.0
 HEAD_TOLERANCE_RAD = 2e-3
 ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
 MAX_FRAMES = 4  # frames per wanted observation before the point gives up
+BLANK_PX = 2  # a frame the camera did not render (SimCameraSource.render_every)
 FIT_MARGIN_MM = 150.0  # keep the runs this far from an open track's limit switch
 STILL_MM = 0.07  # about one encoder count (0.0635 mm): a standing trolley moves less than this
 STILL_WINDOW_S = 0.25  # ... for this long (the rotor's ring-down after a stop is ~0.2 s)
@@ -160,6 +161,9 @@ class Bench:
     latency_ns: int = 0
     home_survey_sigma_mm: float = 0.0
     survey_seed: int = 0
+    # the error budget's predicted overlay σ (px) of the model's centre at (s, pan, tilt)
+    predicted_px: Callable[[float, float, float], float] | None = None
+    home_truth_mm: float | None = None  # true arc length of the zero (scoring only)
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
 
@@ -251,6 +255,7 @@ async def survey_home(bench: Bench, world: SimWorld) -> float:
         return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
 
     surveyed = float(world.with_truth(simultaneous))
+    bench.home_truth_mm = surveyed  # scoring only
     if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, once per survey
         rng = np.random.default_rng([bench.survey_seed, round(surveyed * 1e3)])
         surveyed += float(rng.normal(0.0, bench.home_survey_sigma_mm))
@@ -281,9 +286,12 @@ async def static_experiment(
             "offset_px": summary([sc.error_px for sc in scores]),
             "frames": len(results),
         }
-        last = results[-1][0]
-        if last.image is not None:
-            bench.snapshots.append((f"Observation point {offset:.0f} mm", last.image))
+        if bench.predicted_px is not None:
+            pan, tilt = bench.rig.aim(s, target)
+            rows[f"{offset:.0f}"]["predicted_sigma_px"] = bench.predicted_px(s, pan, tilt)
+        drawn = [r for r, _ in results if r.image is not None and r.image.shape[0] > BLANK_PX]
+        if drawn:
+            bench.snapshots.append((f"Observation point {offset:.0f} mm", drawn[-1].image))
     return rows
 
 
