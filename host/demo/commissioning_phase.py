@@ -45,6 +45,7 @@ READY_TIMEOUT_S = 60.0
 POLL_S = 0.1
 UM_PER_MM = 1000.0
 HOMED = int(Inputs.HOMED)
+ZERO_SURVEY_SALT = 0x2E80
 
 
 @dataclass(frozen=True)
@@ -85,7 +86,7 @@ def survey_zero(world: SimWorld, seed: int) -> float:
         return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
 
     true_zero = float(world.with_truth(simultaneous))
-    rng = np.random.default_rng([seed, round(true_zero * 1e3)])
+    rng = np.random.default_rng([seed, ZERO_SURVEY_SALT])
     return true_zero + float(rng.normal(0.0, SURVEY_SIGMA_MM))
 
 

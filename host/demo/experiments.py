@@ -31,6 +31,7 @@ from host.geometry.transforms import make_T
 from host.link import Controller
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
+from protocol.enums import Fault, State
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[str, float], None]
@@ -59,6 +60,8 @@ STILL_WINDOW_S = 0.25  # ... for this long (the rotor's ring-down after a stop i
 STILL_POLL_S = 0.01
 STILL_TIMEOUT_S = 3.0
 UM_PER_MM = 1000.0
+STATUS_WAIT_S = 0.3  # STATUS streams at 2-20 Hz and is sent on every state change
+SURVEY_SALT = 0x5A11  # the simulated surveys' noise stream, apart from the plant's
 
 
 @dataclass(frozen=True)
@@ -161,11 +164,15 @@ class Bench:
     latency_ns: int = 0
     home_survey_sigma_mm: float = 0.0
     survey_seed: int = 0
+    survey_rng: np.random.Generator = field(init=False)
     # the error budget's predicted overlay σ (px) of the model's centre at (s, pan, tilt)
     predicted_px: Callable[[float, float, float], float] | None = None
     home_truth_mm: float | None = None  # true arc length of the zero (scoring only)
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.survey_rng = np.random.default_rng([self.survey_seed, SURVEY_SALT])
 
     def registrars(self) -> tuple[Registrar, Registrar]:
         """Encoder-only (draws the overlay) and fused (scored only)."""
@@ -213,11 +220,23 @@ class Bench:
         await asyncio.sleep(SETTLE_S)
 
 
-async def start_host(bench: Bench, link: str) -> None:
-    """Streams on at what the link carries, then home."""
+async def start_host(bench: Bench, link: str) -> list[str]:
+    """Streams on at what the link carries, then home; the latched faults it had to clear.
+
+    Only a WATCHDOG fault is cleared (a host that went quiet before, e.g. the commissioning
+    daemon on a starved machine); any other fault or an e-stop stops the run, as it would stop
+    an operator.
+    """
     await bench.ctrl.set_streams(STREAM_RATES_HZ[link])
+    await asyncio.sleep(STATUS_WAIT_S)  # a STATUS has arrived: the snapshot is current
+    snap = bench.ctrl.snapshot()
+    cleared: list[str] = []
+    if snap.state is State.FAULT and snap.faults == Fault.WATCHDOG:
+        await bench.ctrl.clear_fault()
+        cleared.append("WATCHDOG")
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
+    return cleared
 
 
 async def wait_still(bench: Bench) -> None:
@@ -256,9 +275,8 @@ async def survey_home(bench: Bench, world: SimWorld) -> float:
 
     surveyed = float(world.with_truth(simultaneous))
     bench.home_truth_mm = surveyed  # scoring only
-    if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, once per survey
-        rng = np.random.default_rng([bench.survey_seed, round(surveyed * 1e3)])
-        surveyed += float(rng.normal(0.0, bench.home_survey_sigma_mm))
+    if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, a new draw each time
+        surveyed += float(bench.survey_rng.normal(0.0, bench.home_survey_sigma_mm))
     return surveyed
 
 

@@ -206,8 +206,12 @@ async def _experiments(
         progress("connect: handshake and homing", 0.0)
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
-        await start_host(bench, link)
-        feed.set_home(await survey_home(bench, world))
+        results["faults_cleared"] = await start_host(bench, link)
+        surveyed = await survey_home(bench, world)
+        # Commissioned: the zero surveyed then is in the rig file and the calibration (the
+        # track placement) was solved with it; the same switch and index give the same zero.
+        commissioned = results["mode"]["commissioned"]
+        feed.set_home(rigs.host.track.home.value if commissioned else surveyed)
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}
         results["static"] = await static_experiment(bench, plan, start_s, progress)
         phase["static"] = False
