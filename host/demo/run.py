@@ -48,7 +48,7 @@ from host.rig.schema import SURVEY_SIGMA_MM
 
 BAR_WIDTH = 30
 RENDER_EVERY = 8  # experiment frames rendered as images (the report's snapshots); all registered
-COMMISSIONING_FPS = 10.0  # the daemon's camera while commissioning: views are captured at rest
+COMMISSIONING_FPS = 5.0  # the daemon's camera while commissioning: views are captured at rest
 
 
 @dataclass

@@ -253,7 +253,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         segments,
         _pose(t, "placement", default.placement),
         t.flag("closed", None),
-        _scalar(t, "home", default.home, "mm", 0.0, 1e6),
+        _scalar(t, "home", default.home, "mm", -1e6, 1e6),  # a loop's zero may lie before s = 0
         marks,
         t.optional("travel_min_mm", -1e6, 1e6),
         t.optional("travel_max_mm", -1e6, 1e7),
