@@ -139,7 +139,7 @@ async def run_demo(
             rigs = dataclasses.replace(rigs, host=load_rig(host_rig_file))
             results["mode"]["commissioned"] = bool(results["commissioning"]["passed"])
         base = plan or (Plan.quick() if quick else Plan())
-        fitted = base.fitted(rigs.start_s_mm(), rigs.host.track.home.value, rigs.travel_mm())
+        fitted = base.fitted(rigs.start_s_mm(), rigs.home_switch_mm(), rigs.travel_mm())
         snapshots = await _experiments(rigs, world, fitted, link, seed, results)
     finally:
         await world.stop()
@@ -186,7 +186,7 @@ async def _experiments(
         feed,
         workpiece,
         Truth(rigs.true_kinematics(), rigs.true_camera()),
-        home_switch_s_mm=rigs.host.track.home.value,
+        home_switch_s_mm=rigs.home_switch_mm(),
         latency_ns=round(rigs.host.camera.latency.value * 1e6),
         home_survey_sigma_mm=SURVEY_SIGMA_MM if rigs.tolerances else 0.0,
         survey_seed=seed,
