@@ -92,7 +92,13 @@ def mode_text(results: dict[str, Any]) -> str:
             "description, so the host computes with the true calibration (only the chain and "
             "the home survey are measured)."
         )
-    how = "commissioned parameters" if mode.get("commissioned") else "nominal values only"
+    calibrated = mode.get("calibrated") or []
+    if mode.get("commissioned"):
+        how = "commissioned parameters"
+    elif calibrated:
+        how = f"a partly commissioned rig (measured: {', '.join(calibrated)}; the rest nominal)"
+    else:
+        how = "nominal values only"
     return (
         f"Rig: {results.get('rig', '?')}; tolerances on: the simulated rig is off its "
         f"description by seeded installation tolerances; the host computes with {how}."

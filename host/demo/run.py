@@ -43,8 +43,8 @@ from host.frames.loop import FrameLoop
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
-from host.rig import RigError, build_scene, load_rig, save_rig
-from host.rig.schema import SURVEY_SIGMA_MM
+from host.rig import RigError, RigSpec, build_scene, load_rig, save_rig
+from host.rig.schema import NOMINAL, SURVEY_SIGMA_MM
 
 BAR_WIDTH = 30
 RENDER_EVERY = 8  # experiment frames rendered as images (the report's snapshots); all registered
@@ -138,6 +138,7 @@ async def run_demo(
             results["commissioning"] = await _commission(rigs, world, host_rig_file, seed)
             rigs = dataclasses.replace(rigs, host=load_rig(host_rig_file))
             results["mode"]["commissioned"] = bool(results["commissioning"]["passed"])
+            results["mode"]["calibrated"] = calibrated_blocks(rigs.host)
         base = plan or (Plan.quick() if quick else Plan())
         fitted = base.fitted(rigs.start_s_mm(), rigs.home_switch_mm(), rigs.travel_mm())
         snapshots = await _experiments(rigs, world, fitted, link, seed, results)
@@ -257,6 +258,20 @@ async def _commission(rigs: DemoRigs, world: SimWorld, rig_file: Path, seed: int
         camera.close()
     report["total_s"] = time.monotonic() - t0
     return report
+
+
+def calibrated_blocks(spec: RigSpec) -> list[str]:
+    """The rig file's blocks that a measurement wrote (provenance other than nominal)."""
+    blocks = {
+        "camera.intrinsics": spec.camera.intrinsics.provenance,
+        "head.m_cr": spec.head.m_cr.provenance,
+        "track.placement": spec.track.placement.provenance,
+        "track.home": spec.track.home.provenance,
+        "camera.latency": spec.camera.latency.provenance,
+        "rangefinder.mount": spec.rangefinder.mount.provenance,
+        "workpiece.frame": spec.workpiece.frame.provenance,
+    }
+    return [name for name, prov in blocks.items() if prov.method != NOMINAL]
 
 
 def _budget(rigs: DemoRigs) -> Callable[[float, float, float], float]:
