@@ -19,9 +19,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from host.link.common import LinkError, LinkEvent, LinkState
+from host.link.common import LinkError, LinkEvent, LinkState, decode_enum, decode_flags, label
 from host.link.reconnect import BackoffConfig, Supervisor
-from host.link.session import SEQ_MOD, Session, SessionConfig, enum_or_int
+from host.link.session import SEQ_MOD, Session, SessionConfig
 from host.link.shedding import Shedder, SheddingConfig
 from host.transport.base import Transport
 from protocol import Packet
@@ -112,7 +112,7 @@ class Snapshot:
     """What the host knows of the controller right now."""
 
     link: LinkState
-    state: State | None
+    state: State | int | None  # a number when the controller sent a state we do not know
     faults: Fault
     inputs: int
     position_mm: float | None
@@ -217,8 +217,8 @@ class Controller:
         st = self._status.msg if self._status is not None else None
         return Snapshot(
             self.link_state,
-            enum_or_int(State, st.state) if st is not None else None,
-            enum_or_int(Fault, st.faults) if st is not None else Fault.NONE,
+            decode_enum(State, st.state) if st is not None else None,
+            decode_flags(Fault, st.faults) if st is not None else Fault.NONE,
             st.inputs if st is not None else 0,
             self._last_position_mm,
             self._updated_ns,
@@ -397,10 +397,10 @@ class Controller:
         st = self._status
         if st is None or (after_seq is not None and (st.seq - after_seq) % SEQ_MOD >= SEQ_MOD // 2):
             return False
-        state = enum_or_int(State, st.msg.state)
+        state = decode_enum(State, st.msg.state)
         if state in (State.FAULT, State.ESTOP):
-            faults = enum_or_int(Fault, st.msg.faults)
-            raise MotionFailed(f"controller in {getattr(state, 'name', state)}, faults {faults!r}")
+            faults = decode_flags(Fault, st.msg.faults)
+            raise MotionFailed(f"controller in {label(state)}, faults 0x{int(faults):04X}")
         if state not in (State.READY, State.IDLE):
             return False
         # The controller's own profile end, not the encoder (whether the trolley followed is the
@@ -419,6 +419,8 @@ class Controller:
         """Telemetry from the session."""
         msg = packet.message
         if isinstance(msg, Status):
+            decode_enum(State, msg.state)  # an unknown value is logged once, here, on arrival
+            decode_flags(Fault, msg.faults)
             self._status = _Status(packet.seq, msg, time.monotonic_ns())
             self._last_position_mm = msg.position_um / UM_PER_MM
             self._updated_ns = self._status.t_ns

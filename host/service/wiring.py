@@ -32,7 +32,7 @@ from host.geometry.rangefinder import RangeScene, Surface
 from host.geometry.track import Track, runway
 from host.geometry.transforms import FloatArray, make_T, rot_z
 from host.link import Controller
-from host.link.common import LinkDown, LinkEvent, LinkState
+from host.link.common import LinkDown, LinkEvent, LinkState, flag_names, label
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
@@ -42,7 +42,7 @@ from host.registration.track_feed import PoseFeed
 from host.service.daemon import RecordTap
 from host.transport import Transport, TransportConfigError, create_transport
 from protocol import ParamId
-from protocol.enums import Fault, Stream
+from protocol.enums import Stream
 
 log = logging.getLogger(__name__)
 
@@ -217,9 +217,9 @@ class LinkController:
         position = snap.position_mm
         return {
             "link": snap.link.value,
-            "state": snap.state.name if snap.state is not None else "UNKNOWN",
+            "state": label(snap.state) if snap.state is not None else "UNKNOWN",
             "faults": int(snap.faults),
-            "fault_names": _flag_names(snap.faults),
+            "fault_names": flag_names(snap.faults),
             "inputs": snap.inputs,
             "position_mm": None if position is None else round(position, 3),
             "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
@@ -274,8 +274,10 @@ class RecordingSink:
         self.tap(KIND_EVENT, t_host_ns, {"ref_mark_mm": s_mm})
 
 
-def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
-    """The real controller on the configured link (the daemon's default factory)."""
+def controller_factory(
+    config: Config, record_tap: RecordTap, transport: Transport | None = None
+) -> LinkController:
+    """The real controller on the configured link (or on `transport`, for an emulator)."""
     session = SessionConfig(heartbeat_interval_s=config.link.heartbeat_ms / 1000.0)
     backoff = BackoffConfig(max_s=config.link.reconnect_max_s)
 
@@ -284,7 +286,7 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
 
     shedding = XBEE_SHEDDING if config.link.kind == "xbee" else None
     ctrl = Controller(
-        build_transport(config), session, backoff, on_event=on_event, shedding=shedding
+        transport or build_transport(config), session, backoff, on_event=on_event, shedding=shedding
     )
     ranging = bool(config.rangefinder.surfaces)
     adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
@@ -410,11 +412,6 @@ class RateMeter:
             return 0.0
         span_s = (self._times[-1] - self._times[0]) / 1e9
         return (len(self._times) - 1) / span_s if span_s > 0 else 0.0
-
-
-def _flag_names(faults: Fault) -> list[str]:
-    """Names of the set fault bits."""
-    return [f.name for f in Fault if f.value and f in faults and f.name is not None]
 
 
 def pose_sample(t_ns: int, T_w_c: FloatArray, state: str, s_mm: float, index: int) -> PoseSample:
