@@ -99,6 +99,10 @@ class ProtocolMismatch(LinkError):  # noqa: N818
         self.ctrl_hash = ctrl_hash
 
 
+class OutsideTrack(LinkError):  # noqa: N818
+    """A motion that would leave the surveyed open track (or soft limits not yet matching it)."""
+
+
 class ControllerRejected(LinkError):  # noqa: N818
     """The controller answered NAK: the command changed nothing."""
 

@@ -19,13 +19,22 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from host.link.common import LinkError, LinkEvent, LinkState, decode_enum, decode_flags, label
+from host.link.common import (
+    ControllerRejected,
+    LinkError,
+    LinkEvent,
+    LinkState,
+    OutsideTrack,
+    decode_enum,
+    decode_flags,
+    label,
+)
 from host.link.reconnect import BackoffConfig, Supervisor
 from host.link.session import SEQ_MOD, Session, SessionConfig
 from host.link.shedding import Shedder, SheddingConfig
 from host.transport.base import Transport
-from protocol import Packet
-from protocol.enums import Fault, State, Stream
+from protocol import Packet, ParamId
+from protocol.enums import Fault, Inputs, State, Stream
 from protocol.messages import (
     ClearFault,
     EncoderSample,
@@ -108,6 +117,28 @@ class Identity:
 
 
 @dataclass(frozen=True)
+class TrackWindow:
+    """A surveyed open track in controller millimetres: [0, L] minus the track position of home.
+
+    Positions outside it are a state (reported, motion into them refused), never an error; the
+    controller's soft limits are kept inside it.
+    """
+
+    lo_mm: float
+    hi_mm: float
+
+    def where(self, position_mm: float) -> str:
+        """ "on", "below_start" or "beyond_end"."""
+        if position_mm < self.lo_mm:
+            return "below_start"
+        return "beyond_end" if position_mm > self.hi_mm else "on"
+
+    def soft_limits_um(self) -> tuple[int, int]:
+        """The soft-limit window the controller gets (rounded inwards to whole µm)."""
+        return math.ceil(self.lo_mm * UM_PER_MM), math.floor(self.hi_mm * UM_PER_MM)
+
+
+@dataclass(frozen=True)
 class Snapshot:
     """What the host knows of the controller right now."""
 
@@ -117,6 +148,8 @@ class Snapshot:
     inputs: int
     position_mm: float | None
     updated_ns: int | None  # host monotonic time of the last STATUS or encoder sample
+    homed: bool = False  # Inputs.HOMED of the latest STATUS or encoder sample
+    track: str | None = None  # "on", "below_start", "beyond_end"; None while not homed
 
 
 @dataclass
@@ -152,6 +185,7 @@ class Controller:
     on_event: Callable[[LinkEvent, str], None] | None = None
     seed: int | None = None
     shedding: SheddingConfig | None = None  # None: the streams always run at the rates asked for
+    track_window: TrackWindow | None = None  # an open track: limits motion and soft limits
 
     def __post_init__(self) -> None:
         self.session = Session(self.transport, self.session_config, on_packet=self._on_packet)
@@ -169,7 +203,9 @@ class Controller:
         self._status: _Status | None = None
         self._status_changed = asyncio.Event()
         self._last_position_mm: float | None = None
+        self._last_inputs = 0
         self._updated_ns: int | None = None
+        self.soft_limits_error: str | None = None  # why the soft limits do not match the track
         self.shedder = None if self.shedding is None else Shedder(self.shedding)
         self._shed_task: asyncio.Task[None] | None = None
 
@@ -215,13 +251,20 @@ class Controller:
     def snapshot(self) -> Snapshot:
         """Current knowledge, without waiting."""
         st = self._status.msg if self._status is not None else None
+        homed = bool(self._last_inputs & Inputs.HOMED)
+        position = self._last_position_mm
+        track = None
+        if homed and position is not None:
+            track = "on" if self.track_window is None else self.track_window.where(position)
         return Snapshot(
             self.link_state,
             decode_enum(State, st.state) if st is not None else None,
             decode_flags(Fault, st.faults) if st is not None else Fault.NONE,
             st.inputs if st is not None else 0,
-            self._last_position_mm,
+            position,
             self._updated_ns,
+            homed,
+            track,
         )
 
     # ---- commands ------------------------------------------------------------------------
@@ -231,13 +274,23 @@ class Controller:
         return await self._motion(Home(speed_um_s=_um(speed_mm_s)), None)
 
     async def move_to(self, mm: float, speed_mm_s: float, accel_mm_s2: float) -> Motion:
-        """Move to an absolute arc length along a trapezoidal profile."""
+        """Move to an absolute arc length along a trapezoidal profile (on the track only)."""
         msg = MoveTo(_um(mm), _um(speed_mm_s), _um(accel_mm_s2))
+        window = self.track_window
+        if window is not None and window.where(mm) != "on":
+            raise OutsideTrack(
+                f"target {mm:g} mm is outside the surveyed track "
+                f"[{window.lo_mm:g}, {window.hi_mm:g}] mm (controller coordinates)"
+            )
         return await self._motion(msg, mm)
 
     async def jog(self, mm_s: float, accel_mm_s2: float) -> Motion:
-        """Run at a signed velocity until stop."""
-        return await self._motion(Jog(_um(mm_s), _um(accel_mm_s2)), None)
+        """Run at a signed velocity until stop; never further off an open track's end."""
+        msg = Jog(_um(mm_s), _um(accel_mm_s2))
+        where = self.snapshot().track
+        if (where == "below_start" and mm_s < 0) or (where == "beyond_end" and mm_s > 0):
+            raise OutsideTrack(f"jog {mm_s:g} mm/s refused: the trolley is {where} of the track")
+        return await self._motion(msg, None)
 
     async def stop(self) -> None:
         """Controlled stop."""
@@ -286,6 +339,7 @@ class Controller:
 
     async def set_param(self, param_id: int, value: int) -> int:
         """Write a parameter; returns the value in force; re-applied after a controller reset."""
+        self._check_soft_limit(int(param_id), int(value))
         in_force = await self._param(ParamSet(int(param_id), int(value)))
         self._params[int(param_id)] = int(value)
         return in_force
@@ -306,7 +360,12 @@ class Controller:
         return await self.session.request(msg)
 
     async def _motion(self, msg: object, target_mm: float | None) -> Motion:
-        """A command whose completion can be awaited."""
+        """A command whose completion can be awaited; on an open track, soft limits first."""
+        self.supervisor.require_up()
+        if self.soft_limits_error is not None:
+            await self._sync_soft_limits()  # the controller refused them earlier: try again
+            if self.soft_limits_error is not None:
+                raise OutsideTrack(f"motion refused: {self.soft_limits_error}")
         reply = await self._command(msg)
         boot_id = self.identity.boot_id if self.identity is not None else None
         return Motion(self, reply.seq, target_mm, boot_id)
@@ -327,6 +386,51 @@ class Controller:
         if rebooted:
             for pid, value in self._params.items():
                 await self.session.request(ParamSet(pid, value))
+        await self._sync_soft_limits()
+
+    async def _sync_soft_limits(self) -> None:
+        """Keep the controller's soft limits inside the open track (set them when they are not).
+
+        A controller that refuses (it is moving, say) leaves `soft_limits_error` set: motions
+        are then refused by this host until a later attempt succeeds.
+        """
+        if self.track_window is None:
+            return
+        lo_um, hi_um = self.track_window.soft_limits_um()
+        try:
+            cur_lo = await self._param_now(ParamGet(ParamId.SOFT_LIMIT_MIN_UM))
+            cur_hi = await self._param_now(ParamGet(ParamId.SOFT_LIMIT_MAX_UM))
+            if lo_um <= cur_lo <= cur_hi <= hi_um:
+                self.soft_limits_error = None
+                return
+            # The controller keeps min <= max after each write: order the two accordingly.
+            order = [(ParamId.SOFT_LIMIT_MIN_UM, lo_um), (ParamId.SOFT_LIMIT_MAX_UM, hi_um)]
+            if lo_um > cur_hi:
+                order.reverse()
+            for pid, value in order:
+                await self._param_now(ParamSet(int(pid), value))
+        except ControllerRejected as exc:
+            self.soft_limits_error = f"soft limits could not be set to the track: {exc}"
+            log.warning("%s", self.soft_limits_error)
+            return
+        self.soft_limits_error = None
+        log.info("soft limits set to the track: [%d, %d] µm", lo_um, hi_um)
+
+    async def _param_now(self, msg: object) -> int:
+        """A parameter request sent even while the handshake is still restoring."""
+        reply = (await self.session.request(msg)).message
+        assert isinstance(reply, ParamValue)
+        return reply.value
+
+    def _check_soft_limit(self, param_id: int, value: int) -> None:
+        """A soft limit written by hand must stay on the open track."""
+        window = self.track_window
+        if window is None or param_id not in (ParamId.SOFT_LIMIT_MIN_UM, ParamId.SOFT_LIMIT_MAX_UM):
+            return
+        lo_um, hi_um = window.soft_limits_um()
+        if not lo_um <= value <= hi_um:
+            name = ParamId(param_id).name
+            raise OutsideTrack(f"{name} = {value} µm: outside the track [{lo_um}, {hi_um}] µm")
 
     def _stream_rate(self, requested_hz: int) -> int:
         """The rate the controller is asked for: as requested, or scaled while shedding."""
@@ -423,6 +527,7 @@ class Controller:
             decode_flags(Fault, msg.faults)
             self._status = _Status(packet.seq, msg, time.monotonic_ns())
             self._last_position_mm = msg.position_um / UM_PER_MM
+            self._last_inputs = msg.inputs
             self._updated_ns = self._status.t_ns
             self._status_changed.set()
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
@@ -448,6 +553,7 @@ class Controller:
             s_mm, v_mm_s = msg.encoder_count * k, msg.velocity_counts_s * k
             self.encoder_ring.append((t_ns, s_mm, v_mm_s, msg.inputs))
             self._last_position_mm, self._updated_ns = s_mm, t_ns
+            self._last_inputs = msg.inputs
             for sink in self._sinks:
                 sink.on_encoder(t_ns, s_mm, v_mm_s, msg.inputs)
         elif isinstance(msg, HeadSample):

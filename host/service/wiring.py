@@ -33,11 +33,12 @@ from host.geometry.track import Track, runway
 from host.geometry.transforms import FloatArray, make_T, rot_z
 from host.link import Controller
 from host.link.common import LinkDown, LinkEvent, LinkState, flag_names, label
+from host.link.controller import TrackWindow
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
 from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_RANGE
-from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
+from host.registration.pose_buffer import AngleBuffer, LookupStatus, PoseSource, SampleBuffer
 from host.registration.track_feed import PoseFeed
 from host.service.daemon import RecordTap
 from host.transport import Transport, TransportConfigError, create_transport
@@ -222,6 +223,8 @@ class LinkController:
             "fault_names": flag_names(snap.faults),
             "inputs": snap.inputs,
             "position_mm": None if position is None else round(position, 3),
+            "homed": snap.homed,
+            "track": snap.track,
             "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
         }
 
@@ -236,6 +239,7 @@ class LinkController:
         out["rtt_ms"] = None if stats.rtt.srtt_s is None else round(stats.rtt.srtt_s * 1e3, 3)
         out["unsynced_samples"] = self.ctrl.unsynced_samples
         out["telemetry_scale"] = self.ctrl.telemetry_scale
+        out["soft_limits_error"] = self.ctrl.soft_limits_error
         if self.track_feed is not None:
             out.update(self.track_feed.stats())
         return out
@@ -286,7 +290,12 @@ def controller_factory(
 
     shedding = XBEE_SHEDDING if config.link.kind == "xbee" else None
     ctrl = Controller(
-        transport or build_transport(config), session, backoff, on_event=on_event, shedding=shedding
+        transport or build_transport(config),
+        session,
+        backoff,
+        on_event=on_event,
+        shedding=shedding,
+        track_window=track_window(config),
     )
     ranging = bool(config.rangefinder.surfaces)
     adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
@@ -308,6 +317,15 @@ def build_track(config: Config) -> Track:
         return Track.from_config(segments, make_T(np.eye(3), [0.0, 0.0, track.height_mm]))
     except ValueError as exc:
         raise WiringError(f"[track]: {exc}") from exc
+
+
+def track_window(config: Config) -> TrackWindow | None:
+    """An open track's extent in controller millimetres (its zero is at `home_s_mm`)."""
+    track = build_track(config)
+    if track.closed:
+        return None
+    home = config.track.home_s_mm
+    return TrackWindow(-home, track.length_mm - home)
 
 
 def _segment_dict(seg: SegmentConfig) -> dict[str, Any]:
@@ -435,6 +453,7 @@ class PosePublisher:
         self.period_ns = round(1e9 / rate_hz)
         self.published = 0
         self.stale = 0  # ticks without a usable pose (no samples yet, or the stream stalled)
+        self.off_track = 0  # of those, ticks with the trolley outside the surveyed open track
         self._meter = RateMeter()
 
     @property
@@ -458,6 +477,7 @@ class PosePublisher:
         pose = self.poses.pose_at(t_ns)
         if not pose.ok or pose.T_w_c is None:
             self.stale += 1
+            self.off_track += pose.status is LookupStatus.OFF_TRACK
             return False
         state = str(self.controller.snapshot().get("state", "UNKNOWN"))
         self.published += 1

@@ -23,8 +23,9 @@ from host.link import common
 from host.service import wiring
 from host.service.daemon import Daemon
 from host.service.notify import Notifier
+from protocol import PARAMS, ParamId
 from protocol.enums import Inputs, State
-from protocol.messages import Status
+from protocol.messages import EncoderSample, HeadSample, Status
 from tests.link.fake_controller import FakeController
 
 HEARTBEAT_S = 0.05
@@ -79,6 +80,7 @@ async def _heartbeats(emulator: FakeController) -> None:
 async def serve(config: Config, tmp_path: Path) -> AsyncIterator[Served]:
     """The daemon on an emulated controller, until the block ends."""
     emulator = FakeController(state=State.IDLE)
+    emulator.params.update({int(p.id): p.default for p in PARAMS})  # the firmware's defaults
     transport = emulator.wire()
     daemon = Daemon(
         config,
@@ -140,3 +142,58 @@ async def test_unknown_state_fault_and_nak_are_numbers_not_a_crash(
     assert sum("State 77" in n for n in notes) == 1  # logged once, however often it came
     assert sum("Fault bit 32768" in n for n in notes) == 1
     assert sum("NAK code 99" in n for n in notes) == 1
+
+
+OPEN_TRACK = """[track]
+preset = "custom"
+home_s_mm = 100.0
+[[track.segments]]
+kind = "straight"
+length_mm = 2000.0
+"""
+MM_PER_COUNT = 20 * 12.7 / 4000  # the emulator's IDENTIFY: 20 teeth, 12.7 mm pitch, 4000 counts
+
+
+async def _sit_at(emulator: FakeController, position_mm: float, duration_s: float) -> None:
+    """Encoder samples and STATUS of a homed trolley standing at a controller position."""
+    loop = asyncio.get_running_loop()
+    count = round(position_mm / MM_PER_COUNT)
+    for _ in range(round(duration_s / 0.02)):
+        mcu_us = (int(loop.time() * 1e6) + emulator.mcu_offset_us) % (1 << 32)
+        emulator.send(EncoderSample(mcu_us, count, count, 0, HOMED))
+        emulator.send(HeadSample(mcu_us, 0, 0))
+        emulator.send(Status(mcu_us, int(State.READY), 0, HOMED, round(position_mm * 1000), 0))
+        await asyncio.sleep(0.02)
+
+
+async def test_open_track_homed_below_zero_is_a_state_not_a_crash(tmp_path: Path) -> None:
+    config = loads_config(config_text(tmp_path, OPEN_TRACK))
+    async with serve(config, tmp_path) as served:
+        emulator = served.emulator
+        # Set from the track on connect: [0, 2000] mm of track is [-100, 1900] mm of controller.
+        assert emulator.params[ParamId.SOFT_LIMIT_MIN_UM] == -100_000
+        assert emulator.params[ParamId.SOFT_LIMIT_MAX_UM] == 1_900_000
+        await _sit_at(emulator, -150.0, 0.6)  # homing ran toward negative s, past the start
+        assert not served.task.done(), "the daemon stopped on a position off the open track"
+        shown = (await served.status())["controller"]
+        assert shown["homed"] is True
+        assert shown["track"] == "below_start"
+        before = len(emulator.executed)
+        async with await served.client() as client:
+            for op, args in (
+                ("move", {"position_mm": 5000.0}),
+                ("move", {"position_mm": -120.0}),
+                ("jog", {"velocity_mm_s": -10.0}),
+                ("param_set", {"param": "SOFT_LIMIT_MIN_UM", "value": -500_000}),
+            ):
+                with pytest.raises(ControlRequestError, match=r"outside|below_start"):
+                    await client.request(op, **args)
+            assert len(emulator.executed) == before  # nothing reached the controller
+            await client.request("jog", velocity_mm_s=10.0)  # back onto the track: allowed
+            await client.request("move", position_mm=500.0)
+        assert [type(m).__name__ for m in emulator.executed[before:]] == ["Jog", "MoveTo"]
+        await _sit_at(emulator, 500.0, 0.3)
+        shown = await served.status()
+        assert shown["controller"]["track"] == "on"
+        assert shown["pose"]["s_mm"] == pytest.approx(600.0, abs=0.1)  # poses again, on the track
+    assert await served.task == 0
