@@ -28,6 +28,7 @@ class PoseSample:
     state: str  # controller state name when the pose was computed
     s_mm: float | None = None  # trolley arc length along the track, if known
     frame_index: int = 0
+    homed: bool = False  # the controller's position was referenced to home (else: flagged)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain types for msgpack events and recordings."""
@@ -37,6 +38,7 @@ class PoseSample:
             "state": self.state,
             "s_mm": self.s_mm,
             "frame_index": self.frame_index,
+            "homed": self.homed,
         }
 
     @classmethod
@@ -50,6 +52,7 @@ class PoseSample:
             str(data["state"]),
             None if s_mm is None else float(s_mm),
             int(data.get("frame_index", 0)),
+            bool(data.get("homed", False)),
         )
 
 

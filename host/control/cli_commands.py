@@ -47,6 +47,7 @@ def add_parsers(subparsers: Any) -> None:
     }
     for name, text in simple.items():
         _socket_parser(subparsers, name, text).set_defaults(handler=_op_handler(name))
+    subparsers.choices["status"].set_defaults(handler=run_status)
     move = _socket_parser(subparsers, "move", "move the trolley to an arc length")
     move.add_argument("mm", type=float, help="target position along the track, mm")
     move.add_argument("--speed", type=float, help="cruise speed, mm/s")
@@ -113,16 +114,32 @@ def run_head(args: argparse.Namespace) -> int:
 
 def request(args: argparse.Namespace, op: str, **op_args: Any) -> int:
     """Send one request and print its result; 1 with a clear message on any failure."""
+    return _request(args, op, op_args)[0]
+
+
+LINK_DOWN_EXIT = 3  # `orbitar status`: the daemon answers, but its controller data is stale
+
+
+def run_status(args: argparse.Namespace) -> int:
+    """`orbitar status`: as any request, but 3 while the controller link is down."""
+    code, result = _request(args, "status", {})
+    if code == 0 and isinstance(result, dict) and result.get("link_up") is False:
+        return LINK_DOWN_EXIT
+    return code
+
+
+def _request(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> tuple[int, Any]:
+    """Send one request and print its result: (exit code, result)."""
     try:
         result = asyncio.run(_one_request(args.socket, op, op_args))
     except (ConnectionError, FileNotFoundError) as exc:
-        return _fail(f"daemon not running? cannot reach {args.socket}: {exc}")
+        return _fail(f"daemon not running? cannot reach {args.socket}: {exc}"), None
     except ControlRequestError as exc:
-        return _fail(f"{op} refused: {exc}")
+        return _fail(f"{op} refused: {exc}"), None
     except TimeoutError:
-        return _fail(f"{op}: no reply from the daemon")
+        return _fail(f"{op}: no reply from the daemon"), None
     emit(_result_text(result, getattr(args, "json", False)))
-    return 0
+    return 0, result
 
 
 def _result_text(result: Any, as_json: bool) -> str:

@@ -31,6 +31,7 @@ class FakeController:
         self.state = State.IDLE
         self.params = {spec.id: spec.default for spec in PARAMS}
         self.head_rad = (0.0, 0.0)
+        self.homed = False
         self._connected = False
         self._connect_delay_s = connect_delay_s
         self._fail_connect = fail_connect
@@ -76,6 +77,7 @@ class FakeController:
         self._require(State.IDLE, State.READY)
         self._go(0.0, 0.0, 1.0)
         self.state = State.READY
+        self.homed = True
 
     async def move_to(self, position_mm: float, speed_mm_s: float | None = None) -> None:
         """Start an absolute move."""
@@ -139,6 +141,7 @@ class FakeController:
             "state": self.state.name,
             "faults": 0,
             "position_mm": position,
+            "homed": self.homed,
             "target_mm": self._to_mm,
             "head_rad": list(self.head_rad),
         }
@@ -193,7 +196,11 @@ class FakeFrameLoop:
             x = self.controller.position_mm
             matrix = ((1.0, 0.0, 0.0, x), (0.0, 0.0, 1.0, 0.0), (0.0, -1.0, 0.0, self.height_mm))
             pose = PoseSample(
-                time.monotonic_ns(), (*matrix, (0.0, 0.0, 0.0, 1.0)), self.controller.state.name, x
+                time.monotonic_ns(),
+                (*matrix, (0.0, 0.0, 0.0, 1.0)),
+                self.controller.state.name,
+                x,
+                homed=self.controller.homed,
             )
             self.frames += 1
             self._fps = 1.0 / self.period_s

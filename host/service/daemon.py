@@ -78,6 +78,7 @@ class Daemon:
         self.link_error = "not connected yet"
         self.ready_sent = False
         self.output_errors = 0
+        self.tracking_held = 0  # poses not sent on FreeD/OpenTrackIO: the trolley was not homed
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
         self.outputs = TrackingOutputs()
@@ -121,8 +122,11 @@ class Daemon:
         self.latest_pose = sample
         data = sample.to_dict()
         try:
-            self.server.publish("pose", data)
-            self.outputs.send(sample)
+            self.server.publish("pose", data)  # flagged `homed: false` until homing is done
+            if sample.homed:
+                self.outputs.send(sample)
+            else:  # a render engine reads no flag: hold FreeD and OpenTrackIO instead
+                self.tracking_held += 1
             if self.bus is not None:
                 self.bus.publish_pose(sample)
             self.record(KIND_POSE, sample.t_ns, data)
@@ -144,13 +148,17 @@ class Daemon:
     def status(self) -> dict[str, Any]:
         """The service part of the status op."""
         fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
+        pose = self.latest_pose
+        pose_age_s = None if pose is None else round((time.monotonic_ns() - pose.t_ns) / 1e9, 3)
         return {
             "phase": self.phase.value,
             "uptime_s": round(time.monotonic() - self._started_s, 3),
-            "fps": fps,
+            "fps": round(fps, 2),
+            "pose_age_s": pose_age_s,
             "clients": self.server.client_count,
             "link_error": "" if self.controller.connected else self.link_error,
             **self.outputs.stats(),
+            "tracking_held_unhomed": self.tracking_held,
             "bus": self.bus.stats() if self.bus is not None else None,
             "recording": str(self.recorder.current) if self.recorder else None,
             "output_errors": self.output_errors,
@@ -300,6 +308,7 @@ class Daemon:
         last: dict[str, Any] | None = None
         while True:
             snapshot = dict(self.controller.snapshot())
+            snapshot.pop("age_s", None)  # always changes: not a change of state
             if snapshot != last:
                 self.server.publish("state", snapshot)
                 if self.bus is not None:

@@ -213,9 +213,10 @@ class LinkController:
         await self.ctrl.persist_params()
 
     def snapshot(self) -> Mapping[str, Any]:
-        """Plain values for the status op and `state` events (no timestamps: they always change)."""
+        """Plain values for `status` and `state` events; age_s: since the last STATUS or sample."""
         snap = self.ctrl.snapshot()
         position = snap.position_mm
+        age_ns = None if snap.updated_ns is None else time.monotonic_ns() - snap.updated_ns
         return {
             "link": snap.link.value,
             "state": label(snap.state) if snap.state is not None else "UNKNOWN",
@@ -226,6 +227,7 @@ class LinkController:
             "homed": snap.homed,
             "track": snap.track,
             "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
+            "age_s": None if age_ns is None else round(age_ns / 1e9, 3),
         }
 
     def link_stats(self) -> Mapping[str, Any]:
@@ -424,18 +426,24 @@ class RateMeter:
         while self._times and self._times[0] < cutoff:
             self._times.pop(0)
 
-    def rate(self) -> float:
-        """Recent events per second (0 until two events)."""
+    def rate(self, now_ns: int | None = None) -> float:
+        """Events per second over the window ending now (0 until two events, 0 when they stop)."""
+        cutoff = (time.monotonic_ns() if now_ns is None else now_ns) - self.window_ns
+        while self._times and self._times[0] < cutoff:
+            self._times.pop(0)
         if len(self._times) < 2:
             return 0.0
         span_s = (self._times[-1] - self._times[0]) / 1e9
         return (len(self._times) - 1) / span_s if span_s > 0 else 0.0
 
 
-def pose_sample(t_ns: int, T_w_c: FloatArray, state: str, s_mm: float, index: int) -> PoseSample:
-    """A PoseSample with plain nested tuples (msgpack- and FreeD-ready)."""
+def pose_sample(
+    t_ns: int, T_w_c: FloatArray, snapshot: Mapping[str, Any], s_mm: float, index: int
+) -> PoseSample:
+    """A PoseSample with plain nested tuples (msgpack- and FreeD-ready), flagged when unhomed."""
     matrix = tuple(tuple(float(x) for x in row) for row in T_w_c)
-    return PoseSample(t_ns, matrix, state, float(s_mm), index)
+    state = str(snapshot.get("state", "UNKNOWN"))
+    return PoseSample(t_ns, matrix, state, float(s_mm), index, bool(snapshot.get("homed")))
 
 
 # ---- the loops ---------------------------------------------------------------------------
@@ -479,10 +487,10 @@ class PosePublisher:
             self.stale += 1
             self.off_track += pose.status is LookupStatus.OFF_TRACK
             return False
-        state = str(self.controller.snapshot().get("state", "UNKNOWN"))
         self.published += 1
         self._meter.tick(t_ns)
-        self.sink(pose_sample(t_ns, pose.T_w_c, state, pose.s_mm, self.published))
+        snapshot = self.controller.snapshot()
+        self.sink(pose_sample(t_ns, pose.T_w_c, snapshot, pose.s_mm, self.published))
         return True
 
 
@@ -526,8 +534,8 @@ class CameraPoseLoop:
             self.unregistered += 1
             return
         self._meter.tick(time.monotonic_ns())
-        state = str(self.controller.snapshot().get("state", "UNKNOWN"))
-        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, state, reg.s_mm, reg.index))
+        snapshot = self.controller.snapshot()
+        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, snapshot, reg.s_mm, reg.index))
 
 
 def open_camera(config: Config) -> FrameSource | None:

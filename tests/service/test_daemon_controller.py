@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import sys
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,7 +73,8 @@ def config_text(tmp_path: Path, track: str = "") -> str:
 async def _heartbeats(emulator: FakeController) -> None:
     """Keep the link alive as a controller does."""
     while True:
-        emulator.send_heartbeat(int(HEARTBEAT_S * 1000))
+        if not emulator.silent:  # a silent controller has hung: no heartbeat either
+            emulator.send_heartbeat(int(HEARTBEAT_S * 1000))
         await asyncio.sleep(HEARTBEAT_S)
 
 
@@ -154,15 +156,18 @@ length_mm = 2000.0
 MM_PER_COUNT = 20 * 12.7 / 4000  # the emulator's IDENTIFY: 20 teeth, 12.7 mm pitch, 4000 counts
 
 
-async def _sit_at(emulator: FakeController, position_mm: float, duration_s: float) -> None:
-    """Encoder samples and STATUS of a homed trolley standing at a controller position."""
+async def _sit_at(
+    emulator: FakeController, position_mm: float, duration_s: float, inputs: int = HOMED
+) -> None:
+    """Encoder samples and STATUS of a (homed) trolley standing at a controller position."""
     loop = asyncio.get_running_loop()
     count = round(position_mm / MM_PER_COUNT)
     for _ in range(round(duration_s / 0.02)):
         mcu_us = (int(loop.time() * 1e6) + emulator.mcu_offset_us) % (1 << 32)
-        emulator.send(EncoderSample(mcu_us, count, count, 0, HOMED))
+        emulator.send(EncoderSample(mcu_us, count, count, 0, inputs))
         emulator.send(HeadSample(mcu_us, 0, 0))
-        emulator.send(Status(mcu_us, int(State.READY), 0, HOMED, round(position_mm * 1000), 0))
+        state = int(State.READY if inputs & HOMED else State.IDLE)
+        emulator.send(Status(mcu_us, state, 0, inputs, round(position_mm * 1000), 0))
         await asyncio.sleep(0.02)
 
 
@@ -197,3 +202,57 @@ async def test_open_track_homed_below_zero_is_a_state_not_a_crash(tmp_path: Path
         assert shown["controller"]["track"] == "on"
         assert shown["pose"]["s_mm"] == pytest.approx(600.0, abs=0.1)  # poses again, on the track
     assert await served.task == 0
+
+
+class _Udp(asyncio.DatagramProtocol):
+    def __init__(self) -> None:
+        self.packets: list[bytes] = []
+
+    def datagram_received(self, data: bytes, addr: object) -> None:
+        self.packets.append(data)
+
+
+async def _orbitar_status(socket_path: str) -> int:
+    """`orbitar status` as the operator types it; its exit code."""
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "host.cli", "status", "--socket", socket_path,
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+    )  # fmt: skip
+    return await asyncio.wait_for(proc.wait(), 20.0)
+
+
+async def test_unhomed_poses_flagged_freed_held_and_a_down_link_is_not_fresh(
+    tmp_path: Path,
+) -> None:
+    loop = asyncio.get_running_loop()
+    udp, receiver = await loop.create_datagram_endpoint(_Udp, local_addr=("127.0.0.1", 0))
+    port = udp.get_extra_info("sockname")[1]
+    freed = f'[outputs.freed]\nenabled = true\ndestinations = ["127.0.0.1:{port}"]\n'
+    config = loads_config(config_text(tmp_path, freed))
+    try:
+        async with serve(config, tmp_path) as served:
+            async with await served.client() as client:
+                await client.request("subscribe", topics=["pose"])
+                await _sit_at(served.emulator, 100.0, 0.4, inputs=0)  # powered up, not homed
+                unhomed = (await client.next_event(timeout_s=2))["data"]
+                assert unhomed["homed"] is False
+                held = (await served.status())["service"]["tracking_held_unhomed"]
+                assert held > 0
+                assert not receiver.packets  # FreeD holds an unreferenced pose
+                await _sit_at(served.emulator, 100.0, 0.4)
+                assert receiver.packets  # homed: FreeD flows
+                while not (await client.next_event(timeout_s=2))["data"]["homed"]:
+                    pass
+            served.emulator.silent = True  # the controller hangs: no frames, no heartbeats
+            async with asyncio.timeout(3.0):
+                while (shown := await served.status())["link_up"]:
+                    await asyncio.sleep(0.05)
+            assert shown["controller"]["link"] != "up"
+            assert shown["controller"]["age_s"] >= 0.4  # the last STATUS is that old
+            assert shown["service"]["pose_age_s"] >= 0.4
+            assert await _orbitar_status(served.socket) == 3  # not "ok": the data is stale
+            async with asyncio.timeout(4.0):  # the frame rate falls to 0 (2 s window)
+                while (await served.status())["service"]["fps"] > 0:
+                    await asyncio.sleep(0.1)
+    finally:
+        udp.close()
