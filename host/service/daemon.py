@@ -25,6 +25,7 @@ from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
 from host.outputs.tracking import TrackingOutputs
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
+from host.service.lock import DaemonLock
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
 
@@ -69,10 +70,26 @@ class Daemon:
         notifier: Notifier | None = None,
         calibration: CalibrationProvider | None = None,
     ) -> None:
-        self.config = config
-        self.calibration = calibration or self._config_calibration
+        # First of all: a second daemon on this socket must touch nothing (host.service.lock).
+        self._lock = DaemonLock(config.control.socket_path)
+        self._lock.acquire()
+        try:
+            self._build(config, controller_factory, frame_loop_factory)
+        except BaseException:
+            self._lock.release()
+            raise
         self.config_path = config_path
         self.notifier = notifier or Notifier()
+        self.calibration = calibration or self._config_calibration
+
+    def _build(
+        self,
+        config: Config,
+        controller_factory: ControllerFactory,
+        frame_loop_factory: FrameLoopFactory | None,
+    ) -> None:
+        """Everything the daemon runs, built once the lock is held."""
+        self.config = config
         self.phase = Phase.STARTING
         self.latest_pose: PoseSample | None = None
         self.link_error = "not connected yet"
@@ -104,12 +121,14 @@ class Daemon:
             log.error("cannot start", extra={"kv": {"error": exc}})
             await self._shutdown()
             self._remove_signals(loop)
+            self._lock.release()
             return 1
         try:
             await self._stop.wait()
         finally:
             await self._shutdown()
             self._remove_signals(loop)
+            self._lock.release()
         return self.exit_code
 
     def request_stop(self) -> None:

@@ -16,6 +16,7 @@ from host.control.api import ControllerLike, PoseSink
 from host.control.fake import FakeController, FakeFrameLoop
 from host.service import wiring
 from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory, RecordTap
+from host.service.lock import EXIT_ALREADY_RUNNING, AlreadyRunning
 from host.service.logsetup import setup_logging
 
 log = logging.getLogger(__name__)
@@ -65,9 +66,15 @@ async def _serve(
     """Build the daemon on the running loop (the link objects bind to it) and run it."""
     try:
         daemon = Daemon(config, controller_factory, frame_loop_factory, config_path=config_path)
+    except AlreadyRunning as exc:
+        print(f"orbitar daemon: {exc}", file=sys.stderr)
+        return EXIT_ALREADY_RUNNING
     except wiring.WiringError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the lock file's directory cannot be made or opened
+        print(f"orbitar daemon: cannot start: {exc}", file=sys.stderr)
+        return 1
     return await daemon.run()
 
 

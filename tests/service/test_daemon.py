@@ -17,6 +17,7 @@ import pytest
 
 from host.control.client import ControlClient
 from host.outputs.freed import decode_d1
+from host.service.lock import EXIT_ALREADY_RUNNING
 
 CONFIG = """
 [control]
@@ -232,3 +233,21 @@ async def test_invalid_config_exits_2_with_every_problem(tmp_path: Path) -> None
     assert proc.returncode == 2
     assert b"link.kind = 'pigeon'" in err
     assert b"camera.fps = 0" in err
+
+
+async def test_second_daemon_refuses_and_leaves_the_first_alone(daemon: Running) -> None:
+    await daemon.notes.wait_for("READY=1")
+    socket_path = daemon.dir / "ctl.sock"
+    second = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "host.service", "daemon", "--config", str(daemon.config),
+        env={**os.environ, "ORBITAR_FAKE_CONTROLLER": "1"}, stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    _, err = await asyncio.wait_for(second.communicate(), 20.0)
+    assert second.returncode == EXIT_ALREADY_RUNNING
+    assert f"pid {daemon.proc.pid}" in err.decode()
+    assert "exits without touching it" in err.decode()
+    assert socket_path.exists()  # the running daemon's socket is still there, and answers
+    async with await connect(socket_path) as client:
+        assert (await client.request("status"))["service"]["phase"] == "running"
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert await asyncio.wait_for(daemon.proc.wait(), 5) == 0
