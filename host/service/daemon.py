@@ -1,8 +1,10 @@
 """The daemon's lifecycle: start, keep the link up, serve, report to systemd, stop cleanly.
 
-`Daemon` takes the configuration and two factories (controller, frame loop), so the real
-`host.link.Controller` and frame loop plug in without this module knowing them. Everything runs
-on one event loop; the systemd watchdog is pinged from that loop, so a stalled loop is noticed.
+`Daemon` takes the configuration and two factories (controller, frame loop): the real ones are
+`host.service.wiring`'s, tests pass their own. The controller keeps its link up by itself and
+pushes every link and state change to the daemon, which forwards them to systemd, the control
+socket's subscribers and the recording; nothing here polls. Everything runs on one event loop;
+the systemd watchdog is pinged from that loop, so a stalled loop is noticed.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
+from host.link.common import LinkState
+from host.link.snapshot import ControllerChange, Snapshot
 from host.outputs.tracking import TrackingOutputs
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.lock import DaemonLock
@@ -42,9 +46,6 @@ CalibrationProvider = Callable[[], dict[str, Any]]
 
 STOP_ACK_TIMEOUT_S = 0.8  # SIGTERM budget: stop ack + link close + socket close < 2 s
 LINK_CLOSE_TIMEOUT_S = 0.4
-STATE_POLL_S = 0.1
-LINK_POLL_S = 0.25
-FIRST_RETRY_S = 0.5
 RESTART_SECTIONS = ("link", "track", "head", "camera", "model", "registration", "control", "bus")
 
 
@@ -92,8 +93,8 @@ class Daemon:
         self.config = config
         self.phase = Phase.STARTING
         self.latest_pose: PoseSample | None = None
-        self.link_error = "not connected yet"
         self.ready_sent = False
+        self.link_was_up = False
         self.output_errors = 0
         self.tracking_held = 0  # poses not sent on FreeD/OpenTrackIO: the trolley was not homed
         self.exit_code = 0
@@ -101,6 +102,7 @@ class Daemon:
         self.outputs = TrackingOutputs()
         self.bus: BusPublisher | None = None
         self.controller = controller_factory(config, self.record)
+        self.controller.subscribe(self._on_controller)
         self.frame_loop = (
             frame_loop_factory(config, self.controller, self.on_pose, self.record)
             if frame_loop_factory
@@ -175,7 +177,7 @@ class Daemon:
             "fps": round(fps, 2),
             "pose_age_s": pose_age_s,
             "clients": self.server.client_count,
-            "link_error": "" if self.controller.connected else self.link_error,
+            "link_error": self.controller.link_error,
             **self.outputs.stats(),
             "tracking_held_unhomed": self.tracking_held,
             "bus": self.bus.stats() if self.bus is not None else None,
@@ -228,10 +230,9 @@ class Daemon:
         await self.outputs.start(self.config)
         self._restart_recorder(self.config)
         self._start_bus()
-        for job in (self._link_keeper(), self._watchdog(), self._status_reporter()):
+        self.controller.start()  # connects in the background; changes come to _on_controller
+        for job in (self._watchdog(), self._status_reporter(), self._ready_grace()):
             self._spawn(job)
-        self._spawn(self._state_publisher())
-        self._spawn(self._ready_grace())
         if self.frame_loop is not None:
             self._spawn(self.frame_loop.run())
         self.phase = Phase.RUNNING
@@ -268,40 +269,44 @@ class Daemon:
         except Exception as exc:
             log.warning("link close failed", extra={"kv": {"error": exc}})
 
-    async def _link_keeper(self) -> None:
-        """Connect, and reconnect with capped doubling backoff whenever the link drops."""
-        backoff = FIRST_RETRY_S
-        while True:
-            if not self.controller.connected:
-                try:
-                    await self.controller.connect()
-                except Exception as exc:  # every connect failure is retried, none is fatal
-                    self.link_error = f"{type(exc).__name__}: {exc}"
-                    log.warning("controller not reachable", extra={"kv": {"error": exc}})
-                    await asyncio.sleep(backoff)
-                    backoff = min(backoff * 2, self.config.link.reconnect_max_s)
-                    continue
-                backoff = FIRST_RETRY_S
-                self._link_up()
-            await asyncio.sleep(LINK_POLL_S)
+    def _on_controller(self, change: ControllerChange) -> None:
+        """A pushed change: a `state` event, or the link's new state."""
+        if change.topic == "state":
+            self.server.publish("state", dict(change.snapshot))
+            if self.bus is not None:
+                self.bus.publish_state(change.snapshot)
+        elif change.topic == "link":
+            self._on_link(change.snapshot)
 
-    def _link_up(self) -> None:
-        """The link came up: tell systemd (once) and the subscribers."""
-        log.info("controller link up")
-        self.record(KIND_EVENT, time.monotonic_ns(), {"link": "up"})
-        if not self.ready_sent:
-            self.ready_sent = True
-            self.notifier.ready("running: controller link up")
-        self.server.publish("link", dict(self.controller.link_stats()))
-        if self.bus is not None:
-            self.bus.publish_event("link_up")
+    def _on_link(self, snap: Snapshot) -> None:
+        """The link moved: log it, record it, tell systemd (READY once) and the subscribers."""
+        up = snap.link is LinkState.UP
+        detail = snap.link_detail
+        if up:
+            self.link_was_up = True
+            log.info("controller link up")
+            if not self.ready_sent:
+                self.ready_sent = True
+                self.notifier.ready("running: controller link up")
+        elif snap.link is LinkState.DOWN:
+            what = "controller link down" if self.link_was_up else "controller not reachable"
+            log.warning(what, extra={"kv": {"error": detail}})
+        self.record(KIND_EVENT, time.monotonic_ns(), {"link": snap.link.value, "detail": detail})
+        self.server.publish("link", self._link_event())
+        if self.bus is not None and snap.link in (LinkState.UP, LinkState.DOWN):
+            self.bus.publish_event(f"link_{snap.link.value}", detail)
+
+    def _link_event(self) -> dict[str, Any]:
+        """The `link` event: up or not, why not, and the counters."""
+        stats = dict(self.controller.link_stats())
+        return {"up": self.controller.connected, "error": self.controller.link_error, **stats}
 
     async def _ready_grace(self) -> None:
         """READY=1 after the grace period even without a link, saying why."""
         await asyncio.sleep(self.config.systemd.ready_grace_s)
         if not self.ready_sent:
             self.ready_sent = True
-            self.notifier.ready(f"running without controller: {self.link_error}")
+            self.notifier.ready(f"running without controller: {self.controller.link_error}")
 
     async def _watchdog(self) -> None:
         """WATCHDOG=1 at half the period systemd asked for, from this very loop."""
@@ -318,22 +323,9 @@ class Daemon:
             await asyncio.sleep(self.config.systemd.status_interval_s)
             up = self.controller.connected
             fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
-            link = "link up" if up else f"link down ({self.link_error})"
+            link = "link up" if up else f"link down ({self.controller.link_error})"
             self.notifier.status(f"{link}; {fps:.1f} fps; {self.server.client_count} clients")
-            self.server.publish("link", {"up": up, **self.controller.link_stats()})
-
-    async def _state_publisher(self) -> None:
-        """A `state` event whenever the controller snapshot changes."""
-        last: dict[str, Any] | None = None
-        while True:
-            snapshot = dict(self.controller.snapshot())
-            snapshot.pop("age_s", None)  # always changes: not a change of state
-            if snapshot != last:
-                self.server.publish("state", snapshot)
-                if self.bus is not None:
-                    self.bus.publish_state(snapshot)
-                last = snapshot
-            await asyncio.sleep(STATE_POLL_S)
+            self.server.publish("link", self._link_event())
 
     def _start_bus(self) -> None:
         """Put this rig on the bus if `[bus]` says so (Zenoh is imported only then)."""
@@ -354,7 +346,7 @@ class Daemon:
         """What the bus publishes every stats interval: link, clock sync and frame rate."""
         fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
         up = self.controller.connected
-        return {"link_up": up, "link_error": "" if up else self.link_error, "fps": fps,
+        return {"link_up": up, "link_error": self.controller.link_error, "fps": fps,
                 "link": dict(self.controller.link_stats())}  # fmt: skip
 
     def _restart_recorder(self, config: Config) -> None:

@@ -5,24 +5,18 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import os
 import sys
 from collections.abc import Sequence
 from typing import Any
 
 from host.config import Config, load_config
 from host.config_fields import ConfigError
-from host.control.api import ControllerLike, PoseSink
-from host.control.fake import FakeController, FakeFrameLoop
 from host.service import wiring
-from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory, RecordTap
+from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory
 from host.service.lock import EXIT_ALREADY_RUNNING, AlreadyRunning
 from host.service.logsetup import setup_logging
 
 log = logging.getLogger(__name__)
-
-# Tests only: run the daemon against the in-memory fake instead of the configured link.
-FAKE_ENV = "ORBITAR_FAKE_CONTROLLER"  # "1" works, "fail" never connects
 
 
 def add_parser(subparsers: Any) -> None:
@@ -38,7 +32,7 @@ def run(
     controller_factory: ControllerFactory | None = None,
     frame_loop_factory: FrameLoopFactory | None = None,
 ) -> int:
-    """Run the daemon to completion; the process exit code."""
+    """Run the daemon to completion; the process exit code (tests pass their own factories)."""
     try:
         config = load_config(args.config) if args.config else Config()
     except ConfigError as exc:
@@ -49,8 +43,6 @@ def run(
     except ValueError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
-    if controller_factory is None:
-        controller_factory, frame_loop_factory = _fake_factories()
     if controller_factory is None:
         controller_factory = wiring.controller_factory
         frame_loop_factory = wiring.frame_loop_factory
@@ -76,25 +68,6 @@ async def _serve(
         print(f"orbitar daemon: cannot start: {exc}", file=sys.stderr)
         return 1
     return await daemon.run()
-
-
-def _fake_factories() -> tuple[ControllerFactory | None, FrameLoopFactory | None]:
-    """The in-memory fake, only when the test environment variable asks for it."""
-    mode = os.environ.get(FAKE_ENV, "")
-    if not mode:
-        return None, None
-
-    def controller(config: Config, tap: RecordTap) -> ControllerLike:
-        return FakeController(fail_connect=mode == "fail")
-
-    def frames(
-        config: Config, ctl: ControllerLike, sink: PoseSink, tap: RecordTap
-    ) -> FakeFrameLoop:
-        assert isinstance(ctl, FakeController)
-        return FakeFrameLoop(ctl, sink, config.camera.fps, config.track.height_mm)
-
-    log.warning("running with the FAKE controller", extra={"kv": {"env": FAKE_ENV}})
-    return controller, frames
 
 
 def main(argv: Sequence[str] | None = None) -> int:

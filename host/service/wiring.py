@@ -1,7 +1,7 @@
 """The daemon's real parts: the controller link and the pose loop, built from the configuration.
 
-`controller_factory` gives the daemon a `LinkController`: `host.link.Controller` on the transport
-named by `[link]`, seen through `host.control.api.ControllerLike`. `frame_loop_factory` builds
+`controller_factory` gives the daemon `host.link.Controller` on the transport named by `[link]`,
+with the stream rates, the track window and the recording tap. `frame_loop_factory` builds
 what turns the controller's samples into camera poses: a `PoseFeed` (encoder and head samples
 into time-indexed buffers), a `PoseSource` on the configured rig, and either a camera frame loop
 with per-frame registration or, without a camera, a fixed-rate pose publisher, so the pose
@@ -32,8 +32,8 @@ from host.geometry.rangefinder import RangeScene, Surface
 from host.geometry.track import Track, runway
 from host.geometry.transforms import FloatArray, make_T, rot_z
 from host.link import Controller
-from host.link.common import LinkDown, LinkEvent, LinkState, flag_names, label
-from host.link.controller import TrackWindow
+from host.link.common import LinkEvent
+from host.link.limits import TrackWindow
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
@@ -42,13 +42,10 @@ from host.registration.pose_buffer import AngleBuffer, LookupStatus, PoseSource,
 from host.registration.track_feed import PoseFeed
 from host.service.daemon import RecordTap
 from host.transport import Transport, TransportConfigError, create_transport
-from protocol import ParamId
 from protocol.enums import Stream
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SPEED_MM_S = 100.0  # the paper's camera speed, when a move names none
-DEFAULT_ACCEL_MM_S2 = 500.0
 # Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN),
 # leaving room for commands, their replies and retransmissions.
 #
@@ -95,7 +92,6 @@ def stream_rates(kind: str, ranging: bool) -> dict[Stream, int]:
     return rates
 
 
-RECONNECT_WAIT_S = 1.0  # how long connect() waits for the supervisor's own reconnection
 ENCODER_HORIZON_NS = 50_000_000  # carry the trolley forward at most 50 ms past its last sample
 HEAD_HORIZON_NS = 150_000_000  # head samples are slower and the head moves slowly
 MAX_GAP_NS = 300_000_000
@@ -137,138 +133,18 @@ def build_transport(config: Config) -> Transport:
         raise WiringError(f"[link]: {exc}") from exc
 
 
-class LinkController:
-    """`ControllerLike` over `host.link.Controller`: defaults for what the socket leaves out."""
-
-    def __init__(self, controller: Controller, stream_rates_hz: Mapping[Stream, int]) -> None:
-        self.ctrl = controller
-        self.stream_rates_hz = dict(stream_rates_hz)
-        self.head_rad: tuple[float, float] | None = None
-        self.track_feed: PoseFeed | None = None  # set by frame_loop_factory; its stats join ours
-        self._supervised = False  # after the first success the supervisor reconnects by itself
-
-    @property
-    def connected(self) -> bool:
-        """True while the session is up."""
-        return self.ctrl.link_state is LinkState.UP
-
-    def chain_pitch_mm(self) -> float | None:
-        """The chain pitch the controller reported in IDENTIFY, None before the first handshake."""
-        ident = self.ctrl.identity
-        return None if ident is None else ident.chain_pitch_mm
-
-    async def connect(self) -> None:
-        """First time: open and handshake; later: wait briefly for the supervisor's reconnect."""
-        if self._supervised:
-            await self._wait_up(RECONNECT_WAIT_S)
-            return
-        await self.ctrl.connect()
-        self._supervised = True
-        await self.ctrl.set_streams(self.stream_rates_hz)  # remembered across reconnects
-
-    async def close(self) -> None:
-        """Stop reconnecting and close the transport."""
-        self._supervised = False
-        await self.ctrl.close()
-
-    async def home(self) -> None:
-        """Start homing at the controller's HOME_SPEED."""
-        await self.ctrl.home()
-
-    async def move_to(self, position_mm: float, speed_mm_s: float | None = None) -> None:
-        """Start an absolute move (returns once acknowledged, not at the target)."""
-        speed = speed_mm_s or DEFAULT_SPEED_MM_S
-        await self.ctrl.move_to(position_mm, speed, DEFAULT_ACCEL_MM_S2)
-
-    async def jog(self, velocity_mm_s: float) -> None:
-        """Constant velocity; 0 ramps down."""
-        await self.ctrl.jog(velocity_mm_s, DEFAULT_ACCEL_MM_S2)
-
-    async def stop(self) -> None:
-        """Controlled stop."""
-        await self.ctrl.stop()
-
-    async def estop(self) -> None:
-        """Emergency stop."""
-        await self.ctrl.estop()
-
-    async def clear_fault(self) -> None:
-        """Release a latched fault or e-stop."""
-        await self.ctrl.clear_fault()
-
-    async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
-        """Point the head."""
-        await self.ctrl.set_head(pan_rad, tilt_rad)
-
-    async def get_param(self, param: ParamId) -> int:
-        """Read a parameter."""
-        return await self.ctrl.get_param(param)
-
-    async def set_param(self, param: ParamId, value: int) -> None:
-        """Write a parameter (RAM)."""
-        await self.ctrl.set_param(param, value)
-
-    async def persist_params(self) -> None:
-        """Store the parameters in flash."""
-        await self.ctrl.persist_params()
-
-    def snapshot(self) -> Mapping[str, Any]:
-        """Plain values for `status` and `state` events; age_s: since the last STATUS or sample."""
-        snap = self.ctrl.snapshot()
-        position = snap.position_mm
-        age_ns = None if snap.updated_ns is None else time.monotonic_ns() - snap.updated_ns
-        return {
-            "link": snap.link.value,
-            "state": label(snap.state) if snap.state is not None else "UNKNOWN",
-            "faults": int(snap.faults),
-            "fault_names": flag_names(snap.faults),
-            "inputs": snap.inputs,
-            "position_mm": None if position is None else round(position, 3),
-            "homed": snap.homed,
-            "track": snap.track,
-            "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
-            "age_s": None if age_ns is None else round(age_ns / 1e9, 3),
-        }
-
-    def link_stats(self) -> Mapping[str, Any]:
-        """The session counters as plain numbers."""
-        stats = self.ctrl.session.stats
-        out: dict[str, Any] = {"state": self.ctrl.link_state.value}
-        for key, value in vars(stats).items():
-            if isinstance(value, int | float):
-                out[key] = value
-        out["drops"] = stats.drops.total()
-        out["rtt_ms"] = None if stats.rtt.srtt_s is None else round(stats.rtt.srtt_s * 1e3, 3)
-        out["unsynced_samples"] = self.ctrl.unsynced_samples
-        out["telemetry_scale"] = self.ctrl.telemetry_scale
-        out["soft_limits_error"] = self.ctrl.soft_limits_error
-        if self.track_feed is not None:
-            out.update(self.track_feed.stats())
-        return out
-
-    async def _wait_up(self, timeout_s: float) -> None:
-        """Poll the supervisor's state; LinkDown if it is still not up."""
-        deadline = time.monotonic() + timeout_s
-        while not self.connected:
-            if time.monotonic() >= deadline:
-                raise LinkDown(f"link is {self.ctrl.link_state.value}, reconnecting")
-            await asyncio.sleep(0.05)
-
-
 class RecordingSink:
     """A `SampleSink` that hands encoder and head samples to the daemon's recording tap."""
 
-    def __init__(self, tap: RecordTap, owner: LinkController) -> None:
+    def __init__(self, tap: RecordTap) -> None:
         self.tap = tap
-        self.owner = owner
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
         """One encoder sample."""
         self.tap(KIND_ENCODER, t_host_ns, {"s_mm": s_mm, "v_mm_s": velocity_mm_s, "inputs": inputs})
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
-        """One head sample (also the head angles the snapshot shows)."""
-        self.owner.head_rad = (pan_rad, tilt_rad)
+        """One head sample."""
         self.tap(KIND_HEAD, t_host_ns, {"pan_rad": pan_rad, "tilt_rad": tilt_rad})
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
@@ -282,7 +158,7 @@ class RecordingSink:
 
 def controller_factory(
     config: Config, record_tap: RecordTap, transport: Transport | None = None
-) -> LinkController:
+) -> Controller:
     """The real controller on the configured link (or on `transport`, for an emulator)."""
     session = SessionConfig(heartbeat_interval_s=config.link.heartbeat_ms / 1000.0)
     backoff = BackoffConfig(max_s=config.link.reconnect_max_s)
@@ -298,12 +174,16 @@ def controller_factory(
         on_event=on_event,
         shedding=shedding,
         track_window=track_window(config),
+        streams_hz=config_stream_rates(config),
     )
-    ranging = bool(config.rangefinder.surfaces)
-    adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
-    ctrl.add_sink(RecordingSink(record_tap, adapter))
+    ctrl.add_sink(RecordingSink(record_tap))
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
-    return adapter
+    return ctrl
+
+
+def config_stream_rates(config: Config) -> dict[Stream, int]:
+    """The telemetry rates for the configured link (with ranging when surfaces are surveyed)."""
+    return stream_rates(config.link.kind, bool(config.rangefinder.surfaces))
 
 
 # ---- rig, camera, model --------------------------------------------------------------------
@@ -453,7 +333,7 @@ class PosePublisher:
     """Without a camera: the pose at the current time, at a fixed rate, from the buffers."""
 
     def __init__(
-        self, poses: PoseSource, controller: LinkController, sink: PoseSink, rate_hz: float
+        self, poses: PoseSource, controller: Controller, sink: PoseSink, rate_hz: float
     ) -> None:
         self.poses = poses
         self.controller = controller
@@ -501,7 +381,7 @@ class CameraPoseLoop:
         self,
         source: FrameSource,
         registrar: Registrar,
-        controller: LinkController,
+        controller: Controller,
         sink: PoseSink,
         record_tap: RecordTap,
     ) -> None:
@@ -556,16 +436,16 @@ def frame_loop_factory(
     config: Config, controller: ControllerLike, pose_sink: PoseSink, record_tap: RecordTap
 ) -> FrameLoopLike:
     """The pose loop on the controller's samples: per camera frame, or at a fixed rate."""
-    if not isinstance(controller, LinkController):
+    if not isinstance(controller, Controller):
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
     camera = open_camera(config)
     latency_ms = config.camera.exposure_latency_ms if camera is not None else 0.0
     poses, feed = build_pose_source(
-        config, controller.stream_rates_hz, latency_ms, controller.chain_pitch_mm
+        config, config_stream_rates(config), latency_ms, controller.chain_pitch_mm
     )
-    controller.ctrl.add_sink(feed)
-    controller.track_feed = feed
+    controller.add_sink(feed)
+    controller.add_stats(feed.stats)
     if camera is None:
         return PosePublisher(poses, controller, pose_sink, config.camera.fps)
     T_w_p = workpiece_pose(config)  # fixed: measured at set-up, the workpiece does not move

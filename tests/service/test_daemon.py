@@ -80,8 +80,14 @@ class Running:
         return (self.dir / "stderr.log").read_text()
 
 
+FAKE_DAEMON = (sys.executable, "-m", "tests.service.fake_daemon")
+
+
 async def start_daemon(
-    tmp_path: Path, fake: str = "1", grace: float = 30.0, extra_env: dict[str, str] | None = None
+    tmp_path: Path,
+    unreachable: bool = False,
+    grace: float = 30.0,
+    extra_env: dict[str, str] | None = None,
 ) -> tuple[Running, asyncio.DatagramTransport]:
     """The daemon in a subprocess, with a notify socket and a FreeD receiver of our own."""
     loop = asyncio.get_running_loop()
@@ -94,11 +100,11 @@ async def start_daemon(
     sock.setblocking(False)
     env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
     env.update(NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="400000")
-    env.update({"ORBITAR_FAKE_CONTROLLER": fake, **(extra_env or {})})
+    env.update(extra_env or {})
+    flags = ["--unreachable"] if unreachable else []
     with open(tmp_path / "stderr.log", "wb") as stderr:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "host.service", "daemon", "--config", str(config),
-            env=env, stderr=stderr,
+            *FAKE_DAEMON, *flags, "daemon", "--config", str(config), env=env, stderr=stderr,
         )  # fmt: skip
     return Running(proc, Notifications(sock), freed, tmp_path, config), transport
 
@@ -204,7 +210,7 @@ async def test_bad_reload_keeps_running(daemon: Running) -> None:
 
 async def test_ready_after_grace_says_why_without_link(tmp_path: Path) -> None:
     running, transport = await start_daemon(
-        tmp_path, fake="fail", grace=0.3, extra_env={"INVOCATION_ID": "x"}
+        tmp_path, unreachable=True, grace=0.3, extra_env={"INVOCATION_ID": "x"}
     )
     try:
         ready = await running.notes.wait_for("READY=1")
@@ -239,8 +245,7 @@ async def test_second_daemon_refuses_and_leaves_the_first_alone(daemon: Running)
     await daemon.notes.wait_for("READY=1")
     socket_path = daemon.dir / "ctl.sock"
     second = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "host.service", "daemon", "--config", str(daemon.config),
-        env={**os.environ, "ORBITAR_FAKE_CONTROLLER": "1"}, stderr=asyncio.subprocess.PIPE,
+        *FAKE_DAEMON, "daemon", "--config", str(daemon.config), stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
     _, err = await asyncio.wait_for(second.communicate(), 20.0)
     assert second.returncode == EXIT_ALREADY_RUNNING

@@ -124,10 +124,14 @@ async def test_unknown_state_fault_and_nak_are_numbers_not_a_crash(
     caplog.set_level(logging.WARNING)
     config = loads_config(config_text(tmp_path))
     async with serve(config, tmp_path) as served:
-        for i in range(5):  # the controller keeps sending it, as a newer firmware would
-            faults = UNKNOWN_FAULT_BIT | 0x0001
-            served.emulator.send(Status(i, UNKNOWN_STATE, faults, HOMED, 1000, 1000))
-            await asyncio.sleep(0.15)  # several status periods and pose ticks
+        async with await served.client() as watcher:
+            await watcher.request("subscribe", topics=["state"])
+            for i in range(5):  # the controller keeps sending it, as a newer firmware would
+                faults = UNKNOWN_FAULT_BIT | 0x0001
+                served.emulator.send(Status(i, UNKNOWN_STATE, faults, HOMED, 1000 + i, 1000))
+                await asyncio.sleep(0.15)  # several status periods and pose ticks
+            pushed = (await watcher.next_event(timeout_s=2))["data"]  # pushed, as STATUS came
+            assert pushed["state"] == UNKNOWN_STATE
         assert not served.task.done(), "the daemon stopped on an unknown controller value"
         shown = (await served.status())["controller"]
         assert shown["state"] == UNKNOWN_STATE
@@ -243,10 +247,18 @@ async def test_unhomed_poses_flagged_freed_held_and_a_down_link_is_not_fresh(
                 assert receiver.packets  # homed: FreeD flows
                 while not (await client.next_event(timeout_s=2))["data"]["homed"]:
                     pass
+            watcher = await served.client()
+            await watcher.request("subscribe", topics=["link"])
             served.emulator.silent = True  # the controller hangs: no frames, no heartbeats
-            async with asyncio.timeout(3.0):
-                while (shown := await served.status())["link_up"]:
-                    await asyncio.sleep(0.05)
+            async with asyncio.timeout(3.0):  # the change is pushed, with its cause
+                while (link := (await watcher.next_event(timeout_s=3))["data"])["up"]:
+                    pass
+            assert "heartbeat" in link["error"]
+            with pytest.raises(ControlRequestError, match="heartbeat"):
+                await watcher.request("home")  # refused, naming the cause
+            await watcher.close()
+            shown = await served.status()
+            assert not shown["link_up"]
             assert shown["controller"]["link"] != "up"
             assert shown["controller"]["age_s"] >= 0.4  # the last STATUS is that old
             assert shown["service"]["pose_age_s"] >= 0.4

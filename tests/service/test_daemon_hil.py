@@ -151,7 +151,6 @@ async def start_daemon(tmp_path: Path) -> tuple[asyncio.subprocess.Process, Noti
     sock.bind(str(tmp_path / "notify.sock"))
     sock.setblocking(False)
     env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
-    env.pop("ORBITAR_FAKE_CONTROLLER", None)
     env.update(NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC=WATCHDOG_USEC)
     with open(tmp_path / "daemon.log", "wb") as log:
         proc = await asyncio.create_subprocess_exec(
