@@ -27,7 +27,7 @@ class FrameTooLargeError(TransportError):
     """A frame longer than the backend can carry was refused; the link stays up."""
 
 
-class LinkState(enum.Enum):
+class TransportState(enum.Enum):
     """Where a transport is in its life."""
 
     CLOSED = "closed"
@@ -62,7 +62,7 @@ class Transport(abc.ABC):
 
     def __init__(self) -> None:
         self.stats = TransportStats()
-        self.state = LinkState.CLOSED
+        self.state = TransportState.CLOSED
         self._receiver: Receiver | None = None
         self._on_lost: LostHandler | None = None
 
@@ -73,27 +73,27 @@ class Transport(abc.ABC):
 
     async def open(self) -> None:
         """Open the link; TransportError with the reason if the device is not there."""
-        self.state = LinkState.OPENING
+        self.state = TransportState.OPENING
         try:
             await self._open()
         except TransportError:
-            self.state = LinkState.CLOSED
+            self.state = TransportState.CLOSED
             raise
         except (OSError, ValueError) as exc:
-            self.state = LinkState.CLOSED
+            self.state = TransportState.CLOSED
             raise TransportError(f"{self.describe()}: {exc}") from exc
-        self.state = LinkState.OPEN
+        self.state = TransportState.OPEN
         self.stats.opens += 1
 
     async def close(self) -> None:
         """Close the link; safe to call twice or on a lost link."""
-        if self.state is not LinkState.CLOSED:
-            self.state = LinkState.CLOSED
+        if self.state is not TransportState.CLOSED:
+            self.state = TransportState.CLOSED
             await self._close()
 
     def send(self, frame: bytes) -> None:
         """Queue one wire frame for sending without blocking; TransportError when not open."""
-        if self.state is not LinkState.OPEN:
+        if self.state is not TransportState.OPEN:
             raise TransportError(f"{self.describe()} is {self.state.value}")
         limit = self.max_frame_bytes
         if limit is not None and len(frame) > limit:
@@ -142,8 +142,8 @@ class Transport(abc.ABC):
 
     def _lost(self, exc: Exception | None) -> None:
         """Backends call this when the device went away (unplugged, bus off, radio gone)."""
-        if self.state is LinkState.OPEN:
-            self.state = LinkState.LOST
+        if self.state is TransportState.OPEN:
+            self.state = TransportState.LOST
             self.stats.losses += 1
             if self._on_lost is not None:
                 self._on_lost(exc)
