@@ -9,7 +9,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from host.config_fields import parse_matrix4, parse_vector3, spec
-from host.geometry.rangefinder import unit_normal
 
 IDENTITY_4 = (
     (1.0, 0.0, 0.0, 0.0),
@@ -58,6 +57,9 @@ SURFACES_EXAMPLE = """# Surveyed surfaces the rangefinder may read (none: readin
 
 def surface_problems(index: int, surface: SurfaceConfig) -> list[str]:
     """What is wrong with one surface, as `key = value: reason` lines."""
+    # Imported here: the geometry needs numpy, which `orbitar status` never loads for a config.
+    from host.geometry.rangefinder import unit_normal
+
     key = f"rangefinder.surfaces[{index}]"
     problems = []
     if not surface.name:

@@ -1,4 +1,4 @@
-"""CLI subcommands that talk to the running daemon, plus config, systemd-unit, daemon and replay.
+"""CLI subcommands that talk to the running daemon, plus config and systemd-unit.
 
 `add_parsers(subparsers)` registers them all; each parser sets `handler`, so host/cli.py runs
 `args.handler(args)` and exits with its return value: 0 on success, 1 when the daemon is not
@@ -21,8 +21,6 @@ from typing import Any, TextIO
 from host.config import Config, default_config_text, load_config
 from host.config_fields import ConfigError
 from host.control.client import ControlClient, ControlRequestError
-from host.service import main as daemon_cmd
-from host.service.replay_registration import add_parser as add_replay_parser
 from host.service.unit import DEFAULT_CONFIG, render_unit
 
 SOCKET_ENV = "ORBITAR_SOCKET"
@@ -79,8 +77,6 @@ def _add_offline_parsers(subparsers: Any) -> None:
     unit.add_argument("--exec", dest="executable", help="path of the orbitar executable")
     unit.add_argument("--config", default=DEFAULT_CONFIG, help="config path for ExecStart")
     unit.set_defaults(handler=run_systemd_unit)
-    daemon_cmd.add_parser(subparsers)
-    add_replay_parser(subparsers)
 
 
 def _socket_parser(subparsers: Any, name: str, text: str) -> argparse.ArgumentParser:

@@ -7,14 +7,15 @@ import asyncio
 import logging
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from host.config import Config, load_config
 from host.config_fields import ConfigError
-from host.service import wiring
-from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory
 from host.service.lock import EXIT_ALREADY_RUNNING, AlreadyRunning
 from host.service.logsetup import setup_logging
+
+if TYPE_CHECKING:
+    from host.service.daemon import ControllerFactory, FrameLoopFactory
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +45,8 @@ def run(
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
     if controller_factory is None:
+        from host.service import wiring  # the real link, camera and pose loop: only to run
+
         controller_factory = wiring.controller_factory
         frame_loop_factory = wiring.frame_loop_factory
     return asyncio.run(_serve(config, controller_factory, frame_loop_factory, args.config))
@@ -56,12 +59,15 @@ async def _serve(
     config_path: str | None,
 ) -> int:
     """Build the daemon on the running loop (the link objects bind to it) and run it."""
+    from host.service.daemon import Daemon
+    from host.service.wiring import WiringError
+
     try:
         daemon = Daemon(config, controller_factory, frame_loop_factory, config_path=config_path)
     except AlreadyRunning as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return EXIT_ALREADY_RUNNING
-    except wiring.WiringError as exc:
+    except WiringError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # the lock file's directory cannot be made or opened
