@@ -20,6 +20,7 @@ class TrackingOutputs:
         self.freed: FreedSender | None = None
         self.opentrackio: OpenTrackIOSender | None = None
         self.errors: dict[str, str] = {}  # output name → why it is not running
+        self.freed_held = 0  # poses FreeD did not send: not homed (FreeD has no field to say so)
 
     async def start(self, config: Config) -> None:
         """(Re)open the outputs as `config` says."""
@@ -35,11 +36,14 @@ class TrackingOutputs:
             self.opentrackio = await self._open("opentrackio", sender)
 
     def send(self, sample: PoseSample) -> None:
-        """One registered pose to every open output."""
+        """One registered pose to every open output; FreeD only once the trolley is homed."""
         if self.freed is not None:
-            self.freed.send(sample.T_w_c)
+            if sample.homed:
+                self.freed.send(sample.T_w_c)
+            else:
+                self.freed_held += 1
         if self.opentrackio is not None:
-            self.opentrackio.send(sample)
+            self.opentrackio.send(sample)  # its tracker status says "not homed"
 
     def close(self) -> None:
         """Close every output."""
@@ -54,6 +58,8 @@ class TrackingOutputs:
         for name, sender in (("freed", self.freed), ("opentrackio", self.opentrackio)):
             if sender is not None:
                 result[name] = sender.stats()
+                if name == "freed":
+                    result[name]["held_unhomed"] = self.freed_held
             elif name in self.errors:
                 result[name] = {"error": self.errors[name]}
             else:

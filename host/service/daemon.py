@@ -96,7 +96,6 @@ class Daemon:
         self.ready_sent = False
         self.link_was_up = False
         self.output_errors = 0
-        self.tracking_held = 0  # poses not sent on FreeD/OpenTrackIO: the trolley was not homed
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
         self.outputs = TrackingOutputs()
@@ -144,10 +143,7 @@ class Daemon:
         data = sample.to_dict()
         try:
             self.server.publish("pose", data)  # flagged `homed: false` until homing is done
-            if sample.homed:
-                self.outputs.send(sample)
-            else:  # a render engine reads no flag: hold FreeD and OpenTrackIO instead
-                self.tracking_held += 1
+            self.outputs.send(sample)  # FreeD is held until homed, OpenTrackIO says it
             if self.bus is not None:
                 self.bus.publish_pose(sample)
             self.record(KIND_POSE, sample.t_ns, data)
@@ -179,7 +175,6 @@ class Daemon:
             "clients": self.server.client_count,
             "link_error": self.controller.link_error,
             **self.outputs.stats(),
-            "tracking_held_unhomed": self.tracking_held,
             "bus": self.bus.stats() if self.bus is not None else None,
             "recording": str(self.recorder.current) if self.recorder else None,
             "output_errors": self.output_errors,

@@ -240,7 +240,7 @@ async def test_unhomed_poses_flagged_freed_held_and_a_down_link_is_not_fresh(
                 await _sit_at(served.emulator, 100.0, 0.4, inputs=0)  # powered up, not homed
                 unhomed = (await client.next_event(timeout_s=2))["data"]
                 assert unhomed["homed"] is False
-                held = (await served.status())["service"]["tracking_held_unhomed"]
+                held = (await served.status())["service"]["freed"]["held_unhomed"]
                 assert held > 0
                 assert not receiver.packets  # FreeD holds an unreferenced pose
                 await _sit_at(served.emulator, 100.0, 0.4)
