@@ -5,11 +5,11 @@ directly. `start()` connects in the background and keeps the link up (host.link.
 `subscribe()` pushes a `ControllerChange` whenever the link state or the controller's STATUS
 changes, so nobody polls. Commands return when the controller acknowledged them; a NAK raises
 ControllerRejected; while the link is not up they raise LinkDown at once (naming the cause)
-instead of waiting. Streams and parameters set
-through this API are remembered and re-applied after every reconnect (parameters only after a
-controller reset: otherwise they are still in force). Motions are never re-sent. With a
-`SheddingConfig`, streams run slower than asked while the link loses the controller's frames
-(`host.link.shedding`).
+instead of waiting. Streams and parameters set through this API are remembered and re-applied
+after every reconnect (parameters only after a controller reset: otherwise they are still in
+force). Motions are never re-sent. On an open track, motion off the surveyed ends is refused
+and the soft limits are kept inside it (host.link.limits). With a `SheddingConfig`, streams run
+slower than asked while the link loses the controller's frames (`host.link.shedding`).
 """
 
 from __future__ import annotations
