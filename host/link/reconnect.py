@@ -120,6 +120,7 @@ class Supervisor:
         """Attempts with growing delays until one succeeds (the first one at once if `first`)."""
         reopen, self._reopen = self._reopen, True
         attempt = 0
+        last = ""
         while True:
             if (reopen and not first) or attempt:
                 delay = self._backoff.delay_s(attempt, self._rng)
@@ -130,7 +131,12 @@ class Supervisor:
                 return
             except (LinkError, TransportError, OSError) as exc:
                 # OSError: a serial device that is not there (yet) raises it from open().
-                log.warning("connection attempt %d failed: %s", attempt + 1, exc)
+                # The same failure again and again (a controller unplugged for hours) is
+                # logged when it starts and every 100th time, not at every attempt.
+                repeated = attempt > 0 and str(exc) == last
+                level = logging.DEBUG if repeated and attempt % 100 else logging.WARNING
+                log.log(level, "connection attempt %d failed: %s", attempt + 1, exc)
+                last = str(exc)
                 attempt += 1
             except Exception:
                 # Anything else is a bug, but the supervisor must outlive it or the link stays

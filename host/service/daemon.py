@@ -95,6 +95,7 @@ class Daemon:
         self.latest_pose: PoseSample | None = None
         self.ready_sent = False
         self.link_was_up = False
+        self._logged_cause = ""  # the link-down cause last logged
         self.output_errors = 0
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
@@ -283,9 +284,10 @@ class Daemon:
             if not self.ready_sent:
                 self.ready_sent = True
                 self.notifier.ready("running: controller link up")
-        elif snap.link is LinkState.DOWN:
+        elif snap.link is LinkState.DOWN and detail != self._logged_cause:
             what = "controller link down" if self.link_was_up else "controller not reachable"
-            log.warning(what, extra={"kv": {"error": detail}})
+            log.warning(what, extra={"kv": {"error": detail}})  # once per cause, not per retry
+        self._logged_cause = "" if up else detail
         self.record(KIND_EVENT, time.monotonic_ns(), {"link": snap.link.value, "detail": detail})
         self.server.publish("link", self._link_event())
         if self.bus is not None and snap.link in (LinkState.UP, LinkState.DOWN):
