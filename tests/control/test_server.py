@@ -235,7 +235,7 @@ async def test_estop_behind_a_full_pipeline_runs_at_once(
 ) -> None:
     gate = asyncio.Event()
 
-    async def slow_param(param: ParamId) -> int:
+    async def slow_param(param_id: int) -> int:
         await gate.wait()
         return 0
 
