@@ -24,6 +24,7 @@ from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
 from host.outputs.tracking import TrackingOutputs
+from host.recording.taps import recording_header
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
@@ -152,7 +153,7 @@ class Daemon:
             "link_error": "" if self.controller.connected else self.link_error,
             **self.outputs.stats(),
             "bus": self.bus.stats() if self.bus is not None else None,
-            "recording": str(self.recorder.current) if self.recorder else None,
+            "recording": self.recorder.status() if self.recorder else {"state": "off"},
             "output_errors": self.output_errors,
         }
 
@@ -330,19 +331,18 @@ class Daemon:
                 "link": dict(self.controller.link_stats())}  # fmt: skip
 
     def _restart_recorder(self, config: Config) -> None:
-        """(Re)open the recording as configured; a failure is logged, not fatal."""
+        """(Re)open the recording as configured; its thread retries a failing disk (status)."""
         if self.recorder is not None:
-            self.recorder.close()
+            self.recorder.close(timeout_s=0.0)  # its thread finishes the old file on its own
             self.recorder = None
         rec = config.recording
         if not rec.enabled:
             return
-        writer = RecordingWriter(rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames)
-        try:
-            writer.open()
-        except OSError as exc:
-            log.error("recording disabled", extra={"kv": {"dir": rec.dir, "error": exc}})
-            return
+        header = recording_header(config, self.config_path, self.calibration())
+        writer = RecordingWriter(
+            rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames, header=header
+        )
+        writer.open()
         self.recorder = writer
 
     def _op_context(self) -> OpContext:
