@@ -10,8 +10,11 @@ drift filter downstream) can be judged on a real recording. It never sends anyth
 
 from __future__ import annotations
 
+import dataclasses
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 from host.link.clocksync import ClockSync
 from host.link.controller import UM_PER_MM, URAD_PER_RAD, Identity, SampleSink
@@ -67,6 +70,15 @@ class LinkReplay:
     def chain_pitch_mm(self) -> float | None:
         """The controller's nominal chain pitch, once IDENTIFY was seen."""
         return self.identity.chain_pitch_mm if self.identity is not None else None
+
+    def adopt_identity(self, fields: Mapping[str, Any]) -> bool:
+        """A header's IDENTIFY constants, for a file that starts mid-session (before any seen)."""
+        if self.identity is not None:
+            return False
+        names = {f.name for f in dataclasses.fields(Identity)}
+        self.identity = Identity(**{k: v for k, v in fields.items() if k in names})
+        self.clock = ClockSync(self.identity.mcu_clock_hz or DEFAULT_MCU_CLOCK_HZ)
+        return True
 
     def feed(self, direction: str, t_ns: int, data: bytes) -> None:
         """One recorded chunk: "tx" frames the host sent, "rx" bytes it received."""

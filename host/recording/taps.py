@@ -75,7 +75,6 @@ def recording_header(
         except (OSError, UnicodeDecodeError) as exc:
             text = f"# could not be read when the recording started: {exc}\n"
     return {
-        "monotonic_ns": time.monotonic_ns(),
         "hostname": socket.gethostname(),
         "link_bytes": True,  # `link` records carry every byte: replay can re-run the link
         "config_path": str(config_path) if config_path is not None else None,
@@ -83,6 +82,34 @@ def recording_header(
         "config": plain(config),
         "calibration": plain(calibration),
     }
+
+
+def header_source(fixed: dict[str, Any], controller: Any) -> Callable[[], dict[str, Any]]:
+    """Header fields for each new file: `fixed`, the time, and the link's identity so far.
+
+    A file started mid-session (rotation, a reload, a disk that came back) holds no IDENTIFY
+    of its own: the header carries the controller's, so a replay of that file alone can still
+    convert its samples. `controller` is the daemon's; anything without an identity gives None.
+    """
+
+    def header() -> dict[str, Any]:
+        return {
+            **fixed,
+            "monotonic_ns": time.monotonic_ns(),
+            "link_identity": _identity(controller),
+        }
+
+    return header
+
+
+def _identity(controller: Any) -> dict[str, Any] | None:
+    """The IDENTIFY constants the controller link holds, as a plain dict (None before any)."""
+    link = getattr(controller, "ctrl", controller)  # the daemon's adapter wraps the link's
+    identity = getattr(link, "identity", None)
+    if identity is None or not dataclasses.is_dataclass(identity):
+        return None
+    result: dict[str, Any] = plain(identity)
+    return result
 
 
 def plain(value: Any) -> Any:

@@ -21,6 +21,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -79,18 +80,20 @@ class RecordingWriter:
         keep_files: int = 10,
         include_frames: bool = False,
         *,
-        header: dict[str, Any] | None = None,
+        header: dict[str, Any] | Callable[[], dict[str, Any]] | None = None,
         fs: FileSystem | None = None,
         drop_when_full: bool = True,
         queue_records: int = QUEUE_RECORDS,
         queue_bytes: int = QUEUE_BYTES,
     ) -> None:
-        """`drop_when_full=False` makes `write` wait for room instead (offline tools, tests)."""
+        """`header`: extra header fields, or a function giving them (called, in the writer
+        thread, for every new file); `drop_when_full=False` makes `write` wait for room instead
+        (offline tools, tests)."""
         self.directory = Path(directory)
         self.rotate_bytes = max(1, int(rotate_mb * BYTES_PER_MB))
         self.keep_files = keep_files
         self.include_frames = include_frames
-        self.header = dict(header or {})
+        self.header = header if callable(header) else dict(header or {})
         self.fs = fs or FileSystem()
         self.drop_when_full = drop_when_full
         self.queue_records, self.queue_bytes = queue_records, queue_bytes
@@ -303,7 +306,7 @@ class RecordingWriter:
                 "version": FORMAT_VERSION,
                 "unix_time": time.time(),
                 "file_number": number,
-                **self.header,
+                **(self.header() if callable(self.header) else self.header),
             }
             blob = self._packer.pack({"k": KIND_HEADER, "t": time.monotonic_ns(), "d": head})
             _write_all(self.fs, fd, blob)

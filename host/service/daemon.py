@@ -24,7 +24,7 @@ from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
 from host.outputs.tracking import TrackingOutputs
-from host.recording.taps import recording_header
+from host.recording.taps import header_source, recording_header
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
@@ -338,7 +338,8 @@ class Daemon:
         rec = config.recording
         if not rec.enabled:
             return
-        header = recording_header(config, self.config_path, self.calibration())
+        fixed = recording_header(config, self.config_path, self.calibration())
+        header = header_source(fixed, self.controller)
         writer = RecordingWriter(
             rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames, header=header
         )

@@ -86,6 +86,8 @@ class ReplayRegistration:
             self.raw = self.source_choice == "raw" or (
                 self.source_choice == "auto" and bool(d.get("link_bytes"))
             )
+            if isinstance(d.get("link_identity"), dict):
+                self.link.adopt_identity(d["link_identity"])
         elif kind == KIND_LINK:
             if self.raw:
                 self.link.feed(str(d["dir"]), record.t_ns, bytes(d["bytes"]))
