@@ -8,6 +8,7 @@ directory blocked by a plain file (ENOTDIR) and the deleted file are real.
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import logging
 import os
@@ -79,10 +80,19 @@ class Stalled(FileSystem):
 
     def __init__(self) -> None:
         self.release = threading.Event()
+        self.entered = threading.Event()  # the writer thread is hanging in a write
 
     def write(self, fd: int, data: memoryview) -> int:
+        self.entered.set()
         self.release.wait()
         return super().write(fd, data)
+
+
+def hang(writer: RecordingWriter, fs: Stalled) -> None:
+    """Start the writer and wait until its thread hangs in its first write (the header)."""
+    writer.open()
+    writer.write("event", 0, {"start": True})
+    assert fs.entered.wait(WAIT_S)
 
 
 def send(writer: RecordingWriter, first: int, n: int) -> None:
@@ -196,7 +206,7 @@ def test_a_deleted_file_is_replaced_not_reported(tmp_path: Path) -> None:
 def test_a_stalled_disk_never_blocks_the_caller(tmp_path: Path) -> None:
     fs = Stalled()
     writer = RecordingWriter(tmp_path, fs=fs, queue_records=100)
-    writer.open()
+    hang(writer, fs)
     try:
         # The writer thread now hangs in its first write. If write() waited for the disk, this
         # loop would hang with it: it returns, keeping 100 records and counting the rest.
@@ -213,7 +223,7 @@ def test_a_stalled_disk_never_blocks_the_caller(tmp_path: Path) -> None:
 def test_frames_wait_for_encoding_in_a_queue_of_their_own_size(tmp_path: Path) -> None:
     fs = Stalled()
     writer = RecordingWriter(tmp_path, fs=fs, include_frames=True)
-    writer.open()
+    hang(writer, fs)
     image = np.zeros((48, 64, 3), np.uint8)
     try:
         taken = [writer.write("frame", i, {"index": i, "image": image}) for i in range(20)]
@@ -226,3 +236,36 @@ def test_frames_wait_for_encoding_in_a_queue_of_their_own_size(tmp_path: Path) -
     frames = [r.data for r in RecordingReader([tmp_path]) if r.kind == "frame"]
     assert [f["index"] for f in frames] == list(range(QUEUE_FRAMES))
     assert all(f["jpeg"].startswith(b"\xff\xd8") for f in frames)
+
+
+async def test_a_stalled_disk_does_not_stall_the_event_loop(tmp_path: Path) -> None:
+    fs = Stalled()
+    # Should write() ever wait for the disk, this releases it, and the check below fails.
+    rescue = threading.Timer(WAIT_S, fs.release.set)
+    rescue.start()
+    writer = RecordingWriter(tmp_path, fs=fs, queue_records=1000)
+    hang(writer, fs)
+    ticks = 0
+
+    async def heartbeat() -> None:
+        nonlocal ticks
+        for _ in range(50):
+            await asyncio.sleep(0.001)
+            ticks += 1
+
+    async def link() -> None:
+        for i in range(5000):  # a link's worth of records while the disk hangs
+            writer.write("link", i, {"dir": "rx", "bytes": b"\x01\x02\x03\x00"})
+            if i % 100 == 0:
+                await asyncio.sleep(0)
+
+    try:
+        await asyncio.gather(heartbeat(), link())
+        assert not fs.release.is_set()  # all of it ran while the disk was still stalled
+    finally:
+        rescue.cancel()
+        fs.release.set()
+    assert ticks == 50
+    assert writer.status()["dropped_queue_full"] == 4000  # kept what the queue holds
+    assert writer.close()
+    assert sum(r.kind == "link" for r in RecordingReader([tmp_path])) == 1000
