@@ -235,7 +235,11 @@ class RecordingWriter:
                 self._service(batch)
                 if stopping and not self._queue:
                     break
-        except Exception:  # a bug here must not take the daemon down: say so and stop recording
+        except Exception as exc:  # a bug must not take the daemon down: say so, stop recording
+            self.last_error, self._last_error_s = (
+                f"writer stopped: {_describe(exc)}",
+                time.monotonic(),
+            )
             log.exception("recording writer failed")
         finally:
             self._close_file()
@@ -273,17 +277,20 @@ class RecordingWriter:
             else:
                 self.dropped_unwritten += len(piece) + len(packed)  # the rest of the batch too
                 packed.clear()
-            if self._size >= self.rotate_bytes:
+            if self._fd is not None and self._size >= self.rotate_bytes:
                 self._close_file()
                 self._open_file()
         if packed and self._fd is None:
             self.dropped_unwritten += len(packed)
 
     def _piece(self, packed: list[bytes]) -> list[bytes]:
-        """Take from `packed` the records that fill the current file up to its rotation size."""
+        """Take from `packed` the records that fill the current file up to its rotation size.
+
+        At least one: a file whose header alone passes the size still takes a record.
+        """
         room = self.rotate_bytes - self._size
         n, taken = 0, 0
-        while n < len(packed) and taken < room:
+        while n < len(packed) and (n == 0 or taken < room):
             taken += len(packed[n])
             n += 1
         piece = packed[:n]

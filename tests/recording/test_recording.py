@@ -116,3 +116,11 @@ def test_replay_is_deterministic_and_filters_kinds(tmp_path: Path) -> None:
     assert first.results[3] == (3000, 6)
     assert first.by_kind == {"encoder": 20}
     assert first.out_of_order == 0
+
+
+def test_a_rotation_size_below_one_header_still_writes_every_record(tmp_path: Path) -> None:
+    writer = write_samples(tmp_path, 5, rotate_mb=1e-6, keep_files=100)  # 1 byte per file
+    assert [r.data["count"] for r in RecordingReader([tmp_path]) if r.kind == "encoder"] == [
+        0, 1, 2, 3, 4,
+    ]  # fmt: skip
+    assert len(writer.files()) == 11  # one record per file after its header, and the next file
