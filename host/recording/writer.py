@@ -106,7 +106,7 @@ class RecordingWriter:
         self.errors = 0
         self.last_error = ""
         self._last_error_s: float | None = None
-        self._cond = threading.Condition()
+        self._cond = threading.Condition(threading.Lock())  # not re-entrant: cheaper
         self._queue: deque[tuple[str, int, Any, int]] = deque()
         self._queued_bytes = 0
         self._queued_frames = 0
