@@ -64,10 +64,8 @@ class FrameTap:
         return reg
 
 
-def recording_header(
-    config: Any, config_path: str | Path | None, calibration: Mapping[str, Any]
-) -> dict[str, Any]:
-    """Header fields naming what the daemon ran with: config text and values, calibration."""
+def recording_header(config: Any, config_path: str | Path | None) -> dict[str, Any]:
+    """Header fields naming what the daemon runs with: the config file's text and the values."""
     text = ""
     if config_path is not None:
         try:
@@ -80,22 +78,29 @@ def recording_header(
         "config_path": str(config_path) if config_path is not None else None,
         "config_toml": text,  # "" when the daemon ran on the built-in defaults
         "config": plain(config),
-        "calibration": plain(calibration),
     }
 
 
-def header_source(fixed: dict[str, Any], controller: Any) -> Callable[[], dict[str, Any]]:
-    """Header fields for each new file: `fixed`, the time, and the link's identity so far.
+def header_source(
+    fixed: dict[str, Any], controller: Any, calibration: Callable[[], Mapping[str, Any]]
+) -> Callable[[], dict[str, Any]]:
+    """Header fields for each new file, called in the writer thread as the file is opened.
 
-    A file started mid-session (rotation, a reload, a disk that came back) holds no IDENTIFY
-    of its own: the header carries the controller's, so a replay of that file alone can still
-    convert its samples. `controller` is the daemon's; anything without an identity gives None.
+    `fixed`, the time, the calibration in use now and the link's identity so far. A file
+    started mid-session (rotation, a reload, a disk that came back) holds no IDENTIFY of its
+    own: the header carries the controller's, so a replay of that file alone can still convert
+    its samples. `controller` is the daemon's; anything without an identity gives None.
     """
 
     def header() -> dict[str, Any]:
+        try:
+            in_use: Any = plain(calibration())
+        except Exception as exc:  # a header is never worth a lost recording
+            in_use = {"error": f"{type(exc).__name__}: {exc}"}
         return {
             **fixed,
             "monotonic_ns": time.monotonic_ns(),
+            "calibration": in_use,
             "link_identity": _identity(controller),
         }
 

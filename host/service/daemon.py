@@ -338,8 +338,8 @@ class Daemon:
         rec = config.recording
         if not rec.enabled:
             return
-        fixed = recording_header(config, self.config_path, self.calibration())
-        header = header_source(fixed, self.controller)
+        fixed = recording_header(config, self.config_path)
+        header = header_source(fixed, self.controller, self.calibration)
         writer = RecordingWriter(
             rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames, header=header
         )
