@@ -52,6 +52,7 @@ LINK_CHECK_INTERVAL_S = 1.0  # how often the thread checks the open file was not
 RETRY_FIRST_S = 0.5
 RETRY_MAX_S = 30.0
 STILL_FAILING_LOG_S = 60.0  # a failing disk is logged on change, then once a minute
+STALLED_AFTER_S = 2.0  # a disk call this long: status says failing (the thread cannot say it)
 CLOSE_TIMEOUT_S = 0.5  # of the SIGTERM budget (2 s), after the stop ack and the link close
 QUEUE_RECORDS = 50_000  # ~20 s of everything at serial rates
 QUEUE_BYTES = 64 * BYTES_PER_MB
@@ -120,6 +121,7 @@ class RecordingWriter:
         self._backoff_s = RETRY_FIRST_S
         self._next_check = 0.0
         self._last_log_s = 0.0
+        self._busy_since: float | None = None  # the thread is in a disk call since then
         self._packer = msgpack.Packer(use_bin_type=True)
 
     # ---- the producer side (any thread, the event loop included) -------------------------
@@ -195,8 +197,14 @@ class RecordingWriter:
         age = None if self._last_error_s is None else round(now - self._last_error_s, 3)
         waiting = self.state in (RecordingState.FAILING, RecordingState.RETRYING)
         current = self.current
+        state, error = self.state.value, self.last_error
+        busy = self._busy_since
+        blocked_s = 0.0 if busy is None else now - busy
+        if blocked_s > STALLED_AFTER_S:
+            state = RecordingState.FAILING.value
+            error = f"disk not answering: a write has been blocked for {blocked_s:.1f} s"
         return {
-            "state": self.state.value,
+            "state": state,
             "dir": str(self.directory),
             "file": str(current) if current is not None else None,
             "bytes": self.bytes,
@@ -207,8 +215,9 @@ class RecordingWriter:
             "dropped_queue_full": self.dropped_queue_full,
             "queued": len(self._queue),
             "errors": self.errors,
-            "last_error": self.last_error,
+            "last_error": error,
             "last_error_age_s": age,
+            "blocked_s": round(blocked_s, 3),
             "retry_in_s": round(max(0.0, self._retry_at - now), 3) if waiting else None,
         }
 
@@ -232,7 +241,9 @@ class RecordingWriter:
         try:
             while True:
                 batch, stopping = self._take()
+                self._busy_since = time.monotonic()
                 self._service(batch)
+                self._busy_since = None
                 if stopping and not self._queue:
                     break
         except Exception as exc:  # a bug must not take the daemon down: say so, stop recording

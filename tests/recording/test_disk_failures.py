@@ -34,6 +34,7 @@ def quick_retries(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(writer_module, "RETRY_FIRST_S", 0.02)
     monkeypatch.setattr(writer_module, "RETRY_MAX_S", 0.05)
     monkeypatch.setattr(writer_module, "LINK_CHECK_INTERVAL_S", 0.05)
+    monkeypatch.setattr(writer_module, "STALLED_AFTER_S", writer_module.STALLED_AFTER_S)
 
 
 def wait_until(condition: Callable[[], bool], what: str) -> None:
@@ -214,6 +215,9 @@ def test_a_stalled_disk_never_blocks_the_caller(tmp_path: Path) -> None:
         assert accepted == 100
         assert writer.status()["dropped_queue_full"] == 900
         assert writer.status()["queued"] == 100
+        writer_module.STALLED_AFTER_S = 0.0  # (restored by monkeypatch) the hang shows at once
+        assert writer.status()["state"] == "failing"
+        assert "disk not answering" in writer.status()["last_error"]
     finally:
         fs.release.set()
     assert writer.close()
