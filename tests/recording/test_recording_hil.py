@@ -157,6 +157,8 @@ async def test_replay_from_raw_bytes_gives_the_live_poses(
     assert summary["source"] == "raw"
     assert int(summary["raw_samples"]) > 500
     assert float(summary["clock_delta_max_us"]) < CLOCK_TOLERANCE_US
+    with capsys.disabled():  # shown with pytest -s
+        print("\nreplay summary:", " ".join(f"{k}={v}" for k, v in summary.items()))
     replayed = {p["t_ns"]: p for p in map(json.loads, out.read_text().splitlines())}
     moving = [p for p in live if 10.0 < p["s_mm"] - 150.0 < 290.0]
     assert len(moving) > 5  # poses taken while the trolley moved, not only at rest
