@@ -1,11 +1,12 @@
 """Re-run the host's receive path on recorded link bytes: framing, clock sync, samples.
 
-The live session stamps a CLOCK_SYNC probe as it sends it and its reply as it arrives; the
-transport tap records the same bytes with host times taken a few microseconds from those stamps.
+The live session stamps a CLOCK_SYNC probe and its reply with the transport's stamps (taken
+just before the write, and as the chunk arrived), which are the times the transport tap records.
 Fed in recorded order, this class decodes both directions, pairs every reply with its probe,
-fits the controller clock with the same `ClockSync` estimator and converts every sample to host
-time and units exactly as `host.link.Controller` does, so a change to the clock sync (or to the
-drift filter downstream) can be judged on a real recording. It never sends anything.
+fits the controller clock with the same `ClockSync` estimator on the same numbers and converts
+every sample to host time and units as `host.link.Controller` does: the live sample times come
+back to the nanosecond, and a change to the clock sync (or to the drift filter downstream) can
+be judged on a real recording. It never sends anything.
 """
 
 from __future__ import annotations

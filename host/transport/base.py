@@ -72,6 +72,10 @@ class Transport(abc.ABC):
         self._receiver: Receiver | None = None
         self._on_lost: LostHandler | None = None
         self._tap: ByteTap | None = None
+        # Host monotonic ns of the chunk being delivered and of the last frame written: the
+        # session stamps its clock probes with these, the very stamps the tap records.
+        self.rx_time_ns = 0
+        self.tx_time_ns = 0
 
     def set_receiver(self, receiver: Receiver, on_lost: LostHandler | None = None) -> None:
         """Route received bytes (and the news of a lost link) to the session."""
@@ -119,6 +123,7 @@ class Transport(abc.ABC):
             raise TransportError(f"{self.describe()}: {exc}") from exc
         self.stats.frames_out += 1
         self.stats.bytes_out += len(frame)
+        self.tx_time_ns = t_ns
         if self._tap is not None:
             self._tapped("tx", t_ns, frame)
 
@@ -151,8 +156,9 @@ class Transport(abc.ABC):
         """Backends call this with received bytes."""
         self.stats.chunks_in += 1
         self.stats.bytes_in += len(data)
+        self.rx_time_ns = time.monotonic_ns()
         if self._tap is not None:
-            self._tapped("rx", time.monotonic_ns(), data)
+            self._tapped("rx", self.rx_time_ns, data)
         if self._receiver is not None:
             self._receiver(data)
 

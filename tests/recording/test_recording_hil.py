@@ -51,10 +51,10 @@ ready_grace_s = 30.0
 status_interval_s = 0.5
 """
 HOME_SPEED_UM_S = 150_000
-# The tap stamps a probe a few µs after the session does and a reply a few µs before: the
-# replayed clock differs by microseconds, which at 400 mm/s is well under a micrometre.
-POSE_TOLERANCE_MM = 0.01
-CLOCK_TOLERANCE_US = 200.0
+# The session stamps its clock probes with the transport's stamps, which the tap records: the
+# replayed clock is the live one exactly, and the poses agree to the replay's printed rounding.
+POSE_TOLERANCE_MM = 1e-5
+CLOCK_TOLERANCE_US = 0.0
 
 
 async def recording_status(client: ControlClient) -> dict[str, Any]:
@@ -156,7 +156,7 @@ async def test_replay_from_raw_bytes_gives_the_live_poses(
     summary = replay(tmp_path / "rec", out, capsys)
     assert summary["source"] == "raw"
     assert int(summary["raw_samples"]) > 500
-    assert float(summary["clock_delta_max_us"]) < CLOCK_TOLERANCE_US
+    assert float(summary["clock_delta_max_us"]) <= CLOCK_TOLERANCE_US
     with capsys.disabled():  # shown with pytest -s
         print("\nreplay summary:", " ".join(f"{k}={v}" for k, v in summary.items()))
     replayed = {p["t_ns"]: p for p in map(json.loads, out.read_text().splitlines())}
