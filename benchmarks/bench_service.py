@@ -202,7 +202,7 @@ def _recording_rates(n: int) -> tuple[float, float, float]:
     """Records written/s to rotating files, read back/s, and a plain in-memory dump/s."""
     data = POSE.to_dict()
     with tempfile.TemporaryDirectory() as tmp:
-        writer = RecordingWriter(Path(tmp), rotate_mb=8, keep_files=100)
+        writer = RecordingWriter(Path(tmp), rotate_mb=8, keep_files=100, drop_when_full=False)
         writer.open()
         t0 = time.perf_counter()
         for i in range(n):

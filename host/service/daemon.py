@@ -28,6 +28,7 @@ from host.control.server import ControlServer, ControlServerError
 from host.link.common import LinkState
 from host.link.snapshot import ControllerChange, Snapshot
 from host.outputs.tracking import TrackingOutputs
+from host.recording.taps import header_source, recording_header
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.lock import DaemonLock
 from host.service.logsetup import set_level
@@ -177,7 +178,7 @@ class Daemon:
             "link_error": self.controller.link_error,
             **self.outputs.stats(),
             "bus": self.bus.stats() if self.bus is not None else None,
-            "recording": str(self.recorder.current) if self.recorder else None,
+            "recording": self.recorder.status() if self.recorder else {"state": "off"},
             "output_errors": self.output_errors,
         }
 
@@ -347,19 +348,19 @@ class Daemon:
                 "link": dict(self.controller.link_stats())}  # fmt: skip
 
     def _restart_recorder(self, config: Config) -> None:
-        """(Re)open the recording as configured; a failure is logged, not fatal."""
+        """(Re)open the recording as configured; its thread retries a failing disk (status)."""
         if self.recorder is not None:
-            self.recorder.close()
+            self.recorder.close(timeout_s=0.0)  # its thread finishes the old file on its own
             self.recorder = None
         rec = config.recording
         if not rec.enabled:
             return
-        writer = RecordingWriter(rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames)
-        try:
-            writer.open()
-        except OSError as exc:
-            log.error("recording disabled", extra={"kv": {"dir": rec.dir, "error": exc}})
-            return
+        fixed = recording_header(config, self.config_path)
+        header = header_source(fixed, self.controller, self.calibration)
+        writer = RecordingWriter(
+            rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames, header=header
+        )
+        writer.open()
         self.recorder = writer
 
     def _op_context(self) -> OpContext:

@@ -23,7 +23,7 @@ from host.config import Config, SegmentConfig
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
-from host.frames.sources import FrameSource, VideoCaptureSource
+from host.frames.sources import Frame, FrameSource, VideoCaptureSource
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig, orthonormalize_T
@@ -37,7 +37,8 @@ from host.link.limits import TrackWindow
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
-from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_RANGE
+from host.recording.taps import FrameTap, attach_link_tap
+from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_HEAD, KIND_RANGE
 from host.registration.pose_buffer import AngleBuffer, LookupStatus, PoseSource, SampleBuffer
 from host.registration.track_feed import PoseFeed
 from host.service.daemon import RecordTap
@@ -167,8 +168,9 @@ def controller_factory(
         record_tap(KIND_EVENT, time.monotonic_ns(), {"link_event": event.value, "detail": detail})
 
     shedding = XBEE_SHEDDING if config.link.kind == "xbee" else None
+    raw = attach_link_tap(transport or build_transport(config), record_tap)  # bytes recorded
     ctrl = Controller(
-        transport or build_transport(config),
+        raw,
         session,
         backoff,
         on_event=on_event,
@@ -380,7 +382,7 @@ class CameraPoseLoop:
     def __init__(
         self,
         source: FrameSource,
-        registrar: Registrar,
+        registrar: Callable[[Frame], Registration],
         controller: Controller,
         sink: PoseSink,
         record_tap: RecordTap,
@@ -407,9 +409,7 @@ class CameraPoseLoop:
             self.source.close()
 
     def _publish(self, reg: Registration) -> None:
-        """A registered frame → recording record and (if it has a pose) a PoseSample."""
-        frame = {"index": reg.index, "exposure_ns": reg.exposure_ns, "status": reg.status.value}
-        self.record_tap(KIND_FRAME, reg.exposure_ns, frame)
+        """A registered frame (recorded by its FrameTap) → a PoseSample if it has a pose."""
         if reg.T_w_c is None:
             self.unregistered += 1
             return
@@ -450,4 +450,5 @@ def frame_loop_factory(
         return PosePublisher(poses, controller, pose_sink, config.camera.fps)
     T_w_p = workpiece_pose(config)  # fixed: measured at set-up, the workpiece does not move
     registrar = Registrar(poses, build_camera(config), model, lambda t_ns: T_w_p, draw=False)
-    return CameraPoseLoop(camera, registrar, controller, pose_sink, record_tap)
+    recorded = FrameTap(registrar, record_tap)  # frames and their images to the recording
+    return CameraPoseLoop(camera, recorded, controller, pose_sink, record_tap)
