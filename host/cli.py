@@ -42,7 +42,7 @@ COMMANDS: dict[str, Command] = {
     "replay": Command(
         "host.service.replay_registration",
         "add_parser",
-        "re-run the registration on a recording and print the poses",
+        "re-run the link, clock sync and registration on a recording",
     ),
     "demo": Command(
         "host.demo.run",

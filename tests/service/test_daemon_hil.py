@@ -190,6 +190,11 @@ async def test_daemon_drives_the_emulated_trolley(rig: Rig) -> None:
     assert "controller link up" in ready
     assert await rig.notes.wait_for("WATCHDOG=1", 2.0)
     first = await status(rig)
+    for _ in range(50):  # the link is up at the handshake; the first STATUS follows it
+        if first["controller"]["state"] != "UNKNOWN":
+            break
+        await asyncio.sleep(0.1)
+        first = await status(rig)
     assert first["link_up"] is True
     assert first["controller"]["link"] == "up"
     assert first["controller"]["state"] in ("IDLE", "READY")
