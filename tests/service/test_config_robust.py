@@ -1,0 +1,209 @@
+"""Hostile config files: every bad value is named by key and reason, never a traceback."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+import subprocess
+import sys
+import typing
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from host.config import Config, config_from_dict, loads_config
+from host.config_fields import ConfigError
+from host.geometry.head import M_CR_PAPER, orthonormalize_T
+from host.service.preflight import preflight
+
+KEY = r'([A-Za-z0-9_-]+|"(?:[^"\\]|\\.)*"?)'  # bare or quoted (a long one is cut)
+PROBLEM_RE = re.compile(rf"^{KEY}(\.{KEY}|\[\d+\])*( = .*)?: \S", re.DOTALL)
+
+
+def problems(text: str) -> list[str]:
+    """The problems ConfigError lists for `text`."""
+    with pytest.raises(ConfigError) as exc:
+        loads_config(text)
+    return exc.value.problems
+
+
+def config_check(tmp_path: Path, text: str) -> subprocess.CompletedProcess[str]:
+    """`orbitar config check` on `text` in a subprocess, as an operator runs it."""
+    path = tmp_path / "orbitar.toml"
+    path.write_text(text)
+    return subprocess.run(
+        [sys.executable, "-m", "host.cli", "config", "check", str(path)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+
+
+# ---- the files of the issue ---------------------------------------------------------------
+
+ISSUE_FILES = {
+    "scalar for a table": ("track = 5\n", "track = 5: expected a table"),
+    "deep nesting": ("[head]\nm_cr = " + "[" * 3000 + "]" * 3000 + "\n", "head.m_cr: "),
+    "NUL in a path": (
+        '[control]\nsocket_path = "/run/a\\u0000b"\n',
+        "control.socket_path = '/run/a\\x00b': control character U+0000",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", ISSUE_FILES)
+def test_config_check_names_the_key_of_each_bad_file(tmp_path: Path, name: str) -> None:
+    text, expected = ISSUE_FILES[name]
+    result = config_check(tmp_path, text)
+    assert result.returncode == 2, result.stderr
+    assert expected in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_table_shaped_mistakes_are_named() -> None:
+    assert problems("head = [1, 2]\n") == ["head = [1, 2]: expected a table"]
+    assert problems("[outputs]\nfreed = 'on'\n") == ["outputs.freed = 'on': expected a table"]
+    assert problems("[track]\nsegments = 3\n")[0] == (
+        "track.segments = 3: expected an array of tables"
+    )
+
+
+def test_huge_numbers_and_values_are_named_and_cut() -> None:
+    found = problems("[camera]\nfps = " + "9" * 400 + "\n")
+    assert found[0].startswith("camera.fps = 9999")
+    assert "..." in found[0]  # the value is cut, the reason kept
+    assert len(found[0]) < 200
+    found = problems("[model]\nposition_mm = [" + "9" * 400 + ", 0, 0]\n")
+    assert found[0].endswith(": must be finite")
+    assert problems("[link]\nbaud = 1" + "0" * 5000 + "\n")[0].startswith("TOML value: ")
+
+
+def test_control_characters_are_refused_in_every_string() -> None:
+    assert problems('[link]\nurl = "/dev/tty\\u001bUSB0"\n') == [
+        "link.url = '/dev/tty\\x1bUSB0': control character U+001B at position 8"
+    ]
+    found = problems('[outputs.freed]\ndestinations = ["127.0.0.1\\u0000:4000"]\n')
+    assert found[0].startswith("outputs.freed.destinations[0] = ")
+
+
+# ---- rotations -----------------------------------------------------------------------------
+
+
+def m_cr_toml(rows: Any, key: str = "head.m_cr") -> str:
+    section, name = key.rsplit(".", 1)
+    return f"[{section}]\n{name} = {[[float(x) for x in r] for r in rows]}\n"
+
+
+BAD_ROTATIONS = {
+    "zero rotation": (np.diag([0.0, 0.0, 0.0, 1.0]), "singular values 0/0/0"),
+    "scale x10": (np.diag([10.0, 10.0, 10.0, 1.0]), "singular values 10/10/10"),
+    "reflection": (np.diag([1.0, 1.0, -1.0, 1.0]), "a reflection (determinant -1.0000)"),
+    "shear": (np.array([[1, 0.2, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]), "off by"),
+}
+
+
+@pytest.mark.parametrize("name", BAD_ROTATIONS)
+@pytest.mark.parametrize("key", ["head.m_cr", "rangefinder.mount"])
+def test_a_matrix_that_is_no_rotation_is_refused_with_its_deviation(name: str, key: str) -> None:
+    matrix, expected = BAD_ROTATIONS[name]
+    found = problems(m_cr_toml(matrix, key))
+    assert len(found) == 1
+    assert found[0].startswith(f"{key} = ")
+    assert expected in found[0]
+
+
+def test_printed_figures_are_orthonormalised_and_said_so(tmp_path: Path) -> None:
+    config = loads_config(m_cr_toml(M_CR_PAPER))  # eq. 14 as printed: 0.29 % off
+    report = preflight(config)
+    assert (
+        "head.m_cr: rotation orthonormalised (singular values 1.0029/0.9991/0.9983, "
+        "entries moved by up to 0.0023)" in report.notes
+    )
+    assert not any(n.startswith("rangefinder.mount") for n in report.notes)  # identity: exact
+    result = config_check(tmp_path, m_cr_toml(M_CR_PAPER))
+    assert result.returncode == 0
+    assert "note: head.m_cr: rotation orthonormalised" in result.stderr
+
+
+def test_the_geometry_refuses_to_orthonormalise_a_wrong_matrix() -> None:
+    with pytest.raises(ValueError, match="reflection"):
+        orthonormalize_T(np.diag([1.0, -1.0, 1.0, 1.0]))
+    R = orthonormalize_T(M_CR_PAPER)[:3, :3]
+    assert np.allclose(R @ R.T, np.eye(3))
+    assert np.linalg.det(R) == pytest.approx(1.0)
+
+
+# ---- any shape at any key ------------------------------------------------------------------
+
+
+def _keys(cls: type, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """Every table and key path of the schema, as TOML spells them."""
+    out = []
+    hints = typing.get_type_hints(cls)
+    for fld in dataclasses.fields(cls):
+        path = (*prefix, fld.metadata.get("key") or fld.name)
+        out.append(path)
+        hint = hints[fld.name]
+        if dataclasses.is_dataclass(hint):
+            out += _keys(typing.cast(type, hint), path)
+    return out
+
+
+KEYS = _keys(Config)
+TOML_SCALARS = (
+    st.booleans()
+    | st.integers(min_value=-(2**63), max_value=2**63 - 1)
+    | st.floats()
+    | st.text(max_size=12)
+    | st.datetimes()
+)
+TOML_VALUES = st.recursive(
+    TOML_SCALARS,
+    lambda inner: (
+        st.lists(inner, max_size=5) | st.dictionaries(st.text(max_size=6), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+
+def _nest(path: tuple[str, ...], value: Any) -> dict[str, Any]:
+    table: dict[str, Any] = {path[-1]: value}
+    for part in reversed(path[:-1]):
+        table = {part: table}
+    return table
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(path=st.sampled_from(KEYS), value=TOML_VALUES)
+def test_any_value_at_any_key_is_named_never_raised(path: tuple[str, ...], value: Any) -> None:
+    try:
+        config = config_from_dict(_nest(path, value))
+    except ConfigError as exc:
+        found = exc.problems
+    else:
+        found = []
+    if found:
+        for problem in found:
+            assert PROBLEM_RE.match(problem), problem
+        assert any(p.startswith(path[0]) for p in found), found
+        return
+    report = preflight(config)  # a value that loads must get through every start check too
+    for line in report.errors + report.notes:
+        assert PROBLEM_RE.match(line), line
+
+
+def test_the_fuzz_reaches_every_section() -> None:
+    sections = {p[0] for p in KEYS}
+    assert {"link", "track", "head", "rangefinder", "control", "outputs"} <= sections
+    assert ("head", "m_cr") in KEYS
+    assert ("outputs", "freed", "destinations") in KEYS
+    assert len(KEYS) > 60
+
+
+@pytest.mark.slow
+@settings(max_examples=5000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(path=st.sampled_from(KEYS), value=TOML_VALUES)
+def test_any_value_at_any_key_soak(path: tuple[str, ...], value: Any) -> None:
+    test_any_value_at_any_key_is_named_never_raised.hypothesis.inner_test(path, value)  # type: ignore[attr-defined]
