@@ -20,7 +20,7 @@ from typing import Any, TextIO
 
 from host.config import Config, default_config_text
 from host.control.client import ControlClient, ControlRequestError
-from host.service.unit import DEFAULT_CONFIG, render_unit
+from host.service.unit import DEFAULT_CONFIG, installed_executable, render_unit
 
 SOCKET_ENV = "ORBITAR_SOCKET"
 CLEAR_SCREEN = "\x1b[H\x1b[2J"
@@ -249,8 +249,7 @@ def run_config_default(args: argparse.Namespace) -> int:
 
 def run_systemd_unit(args: argparse.Namespace) -> int:
     """`orbitar systemd-unit [--exec PATH] [--config PATH]`."""
-    executable = args.executable or "/usr/bin/orbitar"
-    emit(render_unit(executable, args.config))
+    emit(render_unit(args.executable or installed_executable(), args.config))
     return 0
 
 

@@ -1,13 +1,21 @@
-"""The systemd unit shipped with the package, rendered for a given executable and paths."""
+"""The systemd unit shipped with the package, rendered for the installed executable and paths."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import sys
 from importlib import resources
+from pathlib import Path
 
 UNIT_NAME = "orbitar.service"
-DEFAULT_EXEC = "/usr/bin/orbitar"
+TEMPLATE_EXEC = "/usr/bin/orbitar"  # the placeholder in host/data; no package installs it there
 DEFAULT_CONFIG = "/etc/orbitar/orbitar.toml"
 DEFAULT_STATE_DIR = "/var/lib/orbitar"
+ENTRY_POINT = "orbitar"
+# Where ProtectHome=yes would hide the program (a venv in a home directory).
+HOME_PREFIXES = ("/home/", "/root/", "/run/user/")
+PTY_DEVICES = "DeviceAllow=char-pts rw"  # only for the simulator's pty link, never in production
 
 
 def unit_template() -> str:
@@ -15,17 +23,54 @@ def unit_template() -> str:
     return resources.files("host").joinpath("data", UNIT_NAME).read_text(encoding="utf-8")
 
 
+def installed_executable() -> str:
+    """Absolute path of the `orbitar` entry point that runs now (argv[0], beside python, PATH)."""
+    candidates = [sys.argv[0] if Path(sys.argv[0]).name == ENTRY_POINT else ""]
+    candidates.append(str(Path(sys.executable).with_name(ENTRY_POINT)))
+    candidates.append(shutil.which(ENTRY_POINT) or "")
+    for candidate in candidates:
+        if candidate and os.access(candidate, os.X_OK) and Path(candidate).is_file():
+            return str(Path(candidate).absolute())
+    raise FileNotFoundError(
+        f"no {ENTRY_POINT!r} executable found (argv[0], beside {sys.executable}, PATH): "
+        "install the package, or pass --exec"
+    )
+
+
+def under_home(executable: str) -> bool:
+    """True when the program or the interpreter its #! line names lives in a home directory."""
+    paths = [executable, os.path.realpath(executable)]
+    try:
+        with open(executable, "rb") as script:
+            first = script.readline(4096)
+    except OSError:
+        first = b""
+    if first.startswith(b"#!") and first[2:].split():
+        interpreter = os.fsdecode(first[2:].split()[0])
+        paths += [interpreter, os.path.realpath(interpreter)]
+    return any(p.startswith(HOME_PREFIXES) for p in paths)
+
+
 def render_unit(
-    executable: str = DEFAULT_EXEC,
+    executable: str,
     config_path: str = DEFAULT_CONFIG,
     recording_dir: str | None = None,
+    *,
+    allow_pty: bool = False,
 ) -> str:
-    """The unit with ExecStart and the writable recording directory filled in."""
+    """The unit with ExecStart, ProtectHome, the writable recording directory and devices set."""
     text = unit_template()
-    default_exec = f"ExecStart={DEFAULT_EXEC} daemon --config {DEFAULT_CONFIG}"
+    default_exec = f"ExecStart={TEMPLATE_EXEC} daemon --config {DEFAULT_CONFIG}"
     text = text.replace(default_exec, f"ExecStart={executable} daemon --config {config_path}")
+    if under_home(executable):
+        text = text.replace("\nProtectHome=yes\n", "\nProtectHome=read-only\n")
     if recording_dir and not recording_dir.startswith(DEFAULT_STATE_DIR):
         # ProtectSystem=strict leaves only listed paths writable; "-" tolerates a missing dir.
         extra = f"ReadWritePaths=-{DEFAULT_STATE_DIR} -{recording_dir}"
         text = text.replace(f"ReadWritePaths=-{DEFAULT_STATE_DIR}", extra)
+    if allow_pty:
+        last_device = "DeviceAllow=char-video4linux rw\n"
+        text = text.replace(
+            last_device, f"{last_device}# Development only: the simulator's pty.\n{PTY_DEVICES}\n"
+        )
     return text
