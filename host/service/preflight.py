@@ -21,7 +21,7 @@ import numpy as np
 from host.config import Config, load_config
 from host.config_fields import ConfigError, shown
 from host.geometry.head import orthonormalisation
-from host.outputs.freed import parse_destination
+from host.outputs.udp import parse_destination
 
 UNIX_PATH_MAX_BYTES = 107  # sun_path holds 108 bytes on Linux, one of them the final NUL
 ORTHONORMAL_NOTE_MIN = 1e-9  # entries moved less than this: the matrix was a rotation already
@@ -59,7 +59,7 @@ def preflight(config: Config, *, as_service: bool = False) -> Preflight:
     _check_model(wiring, config, report)
     _check_link(wiring, config, report)
     _check_control(config, report, as_service)
-    _check_freed(config, report)
+    _check_outputs(config, report)
     _check_camera(config, report)
     _check_recording(config, report)
     return report
@@ -153,18 +153,18 @@ def _check_socket_place(path: Path, report: Preflight, as_service: bool) -> None
             report.notes.append(problem + " (fine if the service user may write there)")
 
 
-def _check_freed(config: Config, report: Preflight) -> None:
-    """Every FreeD destination resolves to an address."""
-    freed = config.outputs.freed
-    if not freed.enabled:
-        return
-    for i, destination in enumerate(freed.destinations):
-        host, port = parse_destination(destination)
-        problem = _resolve_problem(host, port, passive=False)
-        if problem:
-            report.errors.append(
-                f"outputs.freed.destinations[{i}] = {shown(destination)}: {problem}"
-            )
+def _check_outputs(config: Config, report: Preflight) -> None:
+    """Tracking output receivers that do not resolve: the output starts without them (status)."""
+    outputs = config.outputs
+    for name, output in (("freed", outputs.freed), ("opentrackio", outputs.opentrackio)):
+        if not output.enabled:
+            continue
+        for i, destination in enumerate(output.destinations):
+            host, port = parse_destination(destination)
+            problem = _resolve_problem(host, port, passive=False)
+            if problem:
+                key = f"outputs.{name}.destinations[{i}] = {shown(destination)}"
+                report.notes.append(f"{key}: {problem} (the output is not started; see status)")
 
 
 def _check_camera(config: Config, report: Preflight) -> None:
