@@ -66,10 +66,12 @@ def preflight(config: Config, *, as_service: bool = False) -> Preflight:
 
 
 def _check_rig(wiring: ModuleType, config: Config, report: Preflight) -> None:
-    """Track, M_cr and rangefinder mount as the wiring builds them; say what was orthonormalised."""
+    """The pose pipeline as the frame loop builds it (track, M_cr, mount, surfaces, buffers,
+    intrinsics), without a device; say what was orthonormalised."""
+    rates = wiring.stream_rates(config.link.kind, bool(config.rangefinder.surfaces))
     try:
-        rig = wiring.build_rig(config)
-        wiring.build_ranger(config, rig)
+        wiring.build_pose_source(config, rates, config.camera.exposure_latency_ms)
+        wiring.build_camera(config)
     except ValueError as exc:  # WiringError names the section; a matrix error names itself
         report.errors.append(str(exc))
         return
