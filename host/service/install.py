@@ -33,6 +33,11 @@ SERVICE_USER = SERVICE_GROUP = "orbitar"
 DEVICE_GROUPS = ("dialout", "video")  # serial and slcan adapters; V4L2 cameras
 UNIT_DIR = "/etc/systemd/system"
 NOLOGIN = "/usr/sbin/nologin"
+# DeviceAllow=char-ttyUSB (ttyACM, video4linux) finds its major in /proc/devices when the unit
+# starts: a driver loaded later (the adapter plugged in after boot) would stay blocked until a
+# restart. Loading the drivers at boot registers the majors before the service starts.
+DEVICE_MODULES = ("usbserial", "cdc_acm", "videodev")
+MODULES_LOAD = Path("/etc/modules-load.d/orbitar.conf")
 
 
 @dataclass(frozen=True)
@@ -103,6 +108,7 @@ def plan(root: Path, executable: str, config_path: str, *, allow_pty: bool = Fal
     for path, mode, user, group in dirs:
         actions.append(_make_dir(root, path, mode, user, group, real))
     actions.append(_write_config(root, Path(config_path), real))
+    actions.append(_write_modules_load(root, real))
     unit = render_unit(executable, config_path, allow_pty=allow_pty)
     actions.append(
         _write_file(root, Path(UNIT_DIR) / UNIT_NAME, unit, 0o644, ("root", "root"), real)
@@ -176,6 +182,32 @@ def _write_file(
             shutil.chown(target, *owner)
 
     return Action(f"write {target} (mode {mode:04o}, owner {owner[0]}:{owner[1]})", write)
+
+
+def kernel_modules(names: tuple[str, ...], moddir: Path | None = None) -> list[str]:
+    """Those of `names` this kernel has, as a module or built in (modules.dep, modules.builtin)."""
+    moddir = moddir or Path("/lib/modules") / os.uname().release
+    known = set()
+    for index in ("modules.dep", "modules.builtin"):
+        try:
+            lines = (moddir / index).read_text(encoding="utf-8").splitlines()
+        except OSError:
+            continue
+        for line in lines:
+            known.add(Path(line.split(":", 1)[0]).name.split(".ko")[0].replace("-", "_"))
+    return [n for n in names if n in known or Path("/sys/module", n).is_dir()]
+
+
+def _write_modules_load(root: Path, real: bool) -> Action:
+    """Load the serial and camera drivers at boot, so their device groups exist at start."""
+    found = kernel_modules(DEVICE_MODULES)
+    if not found:
+        names = ", ".join(DEVICE_MODULES)
+        return Action(f"no {MODULES_LOAD}: this kernel lists none of {names}", None)
+    text = "# orbitar.service: the majors DeviceAllow=char-ttyUSB/ttyACM/video4linux need\n"
+    return _write_file(
+        root, MODULES_LOAD, text + "\n".join(found) + "\n", 0o644, ("root", "root"), real
+    )
 
 
 def _check_config(root: Path, config_path: str) -> int:

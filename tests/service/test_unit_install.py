@@ -13,6 +13,7 @@ import pytest
 
 from host.cli import main as cli_main
 from host.config import Config, load_config
+from host.service import install as install_module
 from host.service.unit import render_unit, under_home
 
 ANALYZE = shutil.which("systemd-analyze")
@@ -126,3 +127,26 @@ def test_security_exposure_is_at_most_3_5_with_devices_reachable(
         assert f"char-{device}:rw" in acl  # serial, slcan CAN, camera
     assert not any(d.startswith("char-pts") for d in acl)
     assert "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6 AF_CAN AF_NETLINK" in unit.read_text()
+
+
+def test_device_drivers_are_loaded_at_boot_where_the_kernel_has_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    moddir = tmp_path / "modules"
+    moddir.mkdir()
+    (moddir / "modules.dep").write_text(
+        "kernel/drivers/usb/serial/usbserial.ko.xz:\n"
+        "kernel/drivers/usb/class/cdc-acm.ko.xz: kernel/drivers/usb/serial/usbserial.ko.xz\n"
+    )
+    (moddir / "modules.builtin").write_text("kernel/drivers/media/v4l2-core/videodev.ko\n")
+    assert install_module.kernel_modules(install_module.DEVICE_MODULES, moddir) == [
+        "usbserial",
+        "cdc_acm",
+        "videodev",
+    ]
+    assert install_module.kernel_modules(("no_such_driver",), moddir) == []
+    monkeypatch.setattr(install_module, "kernel_modules", lambda names: ["usbserial", "cdc_acm"])
+    root = tmp_path / "root"
+    assert install(root) == 0
+    conf = (root / "etc/modules-load.d/orbitar.conf").read_text().splitlines()
+    assert conf[1:] == ["usbserial", "cdc_acm"]
