@@ -249,7 +249,11 @@ def run_config_default(args: argparse.Namespace) -> int:
 
 def run_systemd_unit(args: argparse.Namespace) -> int:
     """`orbitar systemd-unit [--exec PATH] [--config PATH]`."""
-    emit(render_unit(args.executable or installed_executable(), args.config))
+    try:
+        executable = args.executable or installed_executable()
+    except FileNotFoundError as exc:
+        return _fail(str(exc))
+    emit(render_unit(executable, args.config))
     return 0
 
 

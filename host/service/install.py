@@ -100,7 +100,7 @@ def plan(root: Path, executable: str, config_path: str, *, allow_pty: bool = Fal
     actions = _account_actions(real)
     state = Path(DEFAULT_STATE_DIR)
     dirs = [
-        (Path(config_path).parent, 0o750, "root", SERVICE_GROUP),
+        (Path(config_path).parent, 0o755, "root", "root"),  # as ConfigurationDirectoryMode
         (state, 0o750, SERVICE_USER, SERVICE_GROUP),
         (state / "recordings", 0o750, SERVICE_USER, SERVICE_GROUP),
         (Path(UNIT_DIR), 0o755, "root", "root"),

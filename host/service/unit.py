@@ -51,6 +51,14 @@ def under_home(executable: str) -> bool:
     return any(p.startswith(HOME_PREFIXES) for p in paths)
 
 
+def exec_word(word: str) -> str:
+    """One ExecStart= word: specifiers and variables escaped, quoted if it has blanks or quotes."""
+    word = word.replace("%", "%%").replace("$", "$$")
+    if any(c.isspace() or c in "\"'\\;" for c in word):
+        return '"' + word.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return word
+
+
 def render_unit(
     executable: str,
     config_path: str = DEFAULT_CONFIG,
@@ -61,7 +69,8 @@ def render_unit(
     """The unit with ExecStart, ProtectHome, the writable recording directory and devices set."""
     text = unit_template()
     default_exec = f"ExecStart={TEMPLATE_EXEC} daemon --config {DEFAULT_CONFIG}"
-    text = text.replace(default_exec, f"ExecStart={executable} daemon --config {config_path}")
+    exec_line = f"ExecStart={exec_word(executable)} daemon --config {exec_word(config_path)}"
+    text = text.replace(default_exec, exec_line)
     if under_home(executable):
         text = text.replace("\nProtectHome=yes\n", "\nProtectHome=read-only\n")
     if recording_dir and not recording_dir.startswith(DEFAULT_STATE_DIR):

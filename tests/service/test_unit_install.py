@@ -41,7 +41,7 @@ def test_install_stages_user_dirs_config_and_unit(
     assert f"ExecStart={ORBITAR} daemon --config /etc/orbitar/orbitar.toml" in unit
     assert load_config(tmp_path / "etc/orbitar/orbitar.toml") == Config()
     assert (tmp_path / "var/lib/orbitar/recordings").is_dir()
-    assert (tmp_path / "etc/orbitar").stat().st_mode & 0o777 == 0o750
+    assert (tmp_path / "etc/orbitar").stat().st_mode & 0o777 == 0o755
     assert (tmp_path / "etc/orbitar/orbitar.toml").stat().st_mode & 0o777 == 0o640
     assert "orbitar.toml: ok" in out
 
@@ -150,3 +150,16 @@ def test_device_drivers_are_loaded_at_boot_where_the_kernel_has_them(
     assert install(root) == 0
     conf = (root / "etc/modules-load.d/orbitar.conf").read_text().splitlines()
     assert conf[1:] == ["usbserial", "cdc_acm"]
+
+
+@needs_analyze
+def test_a_program_path_with_blanks_and_percent_is_one_execstart_word(tmp_path: Path) -> None:
+    program = tmp_path / "my venv 100%" / "orbitar"
+    program.parent.mkdir()
+    program.write_text("#!/usr/bin/python3\n")
+    program.chmod(0o755)
+    unit = tmp_path / "orbitar.service"
+    unit.write_text(render_unit(str(program), "/etc/orbitar/orbitar.toml"))
+    assert f'ExecStart="{tmp_path}/my venv 100%%/orbitar" daemon --config' in unit.read_text()
+    result = analyze("verify", str(unit))
+    assert result.returncode == 0, result.stderr  # verify finds the program: the word is whole
