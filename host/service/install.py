@@ -109,7 +109,8 @@ def plan(root: Path, executable: str, config_path: str, *, allow_pty: bool = Fal
         actions.append(_make_dir(root, path, mode, user, group, real))
     actions.append(_write_config(root, Path(config_path), real))
     actions.append(_write_modules_load(root, real))
-    unit = render_unit(executable, config_path, allow_pty=allow_pty)
+    writable = _config_dirs(_staged(root, Path(config_path)))
+    unit = render_unit(executable, config_path, writable, allow_pty=allow_pty)
     actions.append(
         _write_file(root, Path(UNIT_DIR) / UNIT_NAME, unit, 0o644, ("root", "root"), real)
     )
@@ -182,6 +183,18 @@ def _write_file(
             shutil.chown(target, *owner)
 
     return Action(f"write {target} (mode {mode:04o}, owner {owner[0]}:{owner[1]})", write)
+
+
+def _config_dirs(path: Path) -> tuple[str, ...]:
+    """Where an existing config makes the daemon write: recordings, the control socket."""
+    from host.config import load_config
+    from host.config_fields import ConfigError
+
+    try:
+        config = load_config(path)
+    except ConfigError:
+        return ()  # a missing file becomes the default; a bad one fails the check at the end
+    return (config.recording.dir, str(Path(config.control.socket_path).parent))
 
 
 def kernel_modules(names: tuple[str, ...], moddir: Path | None = None) -> list[str]:

@@ -12,6 +12,7 @@ UNIT_NAME = "orbitar.service"
 TEMPLATE_EXEC = "/usr/bin/orbitar"  # the placeholder in host/data; no package installs it there
 DEFAULT_CONFIG = "/etc/orbitar/orbitar.toml"
 DEFAULT_STATE_DIR = "/var/lib/orbitar"
+SANDBOX_WRITABLE = (DEFAULT_STATE_DIR, "/run/orbitar")  # StateDirectory=, RuntimeDirectory=
 ENTRY_POINT = "orbitar"
 # Where ProtectHome=yes would hide the program (a venv in a home directory).
 HOME_PREFIXES = ("/home/", "/root/", "/run/user/")
@@ -62,21 +63,22 @@ def exec_word(word: str) -> str:
 def render_unit(
     executable: str,
     config_path: str = DEFAULT_CONFIG,
-    recording_dir: str | None = None,
+    writable: tuple[str, ...] = (),
     *,
     allow_pty: bool = False,
 ) -> str:
-    """The unit with ExecStart, ProtectHome, the writable recording directory and devices set."""
+    """The unit with ExecStart, ProtectHome, extra `writable` directories and devices set."""
     text = unit_template()
     default_exec = f"ExecStart={TEMPLATE_EXEC} daemon --config {DEFAULT_CONFIG}"
     exec_line = f"ExecStart={exec_word(executable)} daemon --config {exec_word(config_path)}"
     text = text.replace(default_exec, exec_line)
     if under_home(executable):
         text = text.replace("\nProtectHome=yes\n", "\nProtectHome=read-only\n")
-    if recording_dir and not recording_dir.startswith(DEFAULT_STATE_DIR):
+    extra = [d for d in writable if not d.startswith(SANDBOX_WRITABLE)]
+    if extra:
         # ProtectSystem=strict leaves only listed paths writable; "-" tolerates a missing dir.
-        extra = f"ReadWritePaths=-{DEFAULT_STATE_DIR} -{recording_dir}"
-        text = text.replace(f"ReadWritePaths=-{DEFAULT_STATE_DIR}", extra)
+        paths = " ".join(exec_word(f"-{d}") for d in (DEFAULT_STATE_DIR, *extra))
+        text = text.replace(f"ReadWritePaths=-{DEFAULT_STATE_DIR}", f"ReadWritePaths={paths}")
     if allow_pty:
         last_device = "DeviceAllow=char-video4linux rw\n"
         text = text.replace(

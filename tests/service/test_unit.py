@@ -40,7 +40,9 @@ def test_unit_has_the_required_settings() -> None:
 
 
 def test_render_fills_exec_and_recording_dir() -> None:
-    text = render_unit("/opt/orbitar/bin/orbitar", "/etc/o.toml", "/srv/recordings")
+    text = render_unit(
+        "/opt/orbitar/bin/orbitar", "/etc/o.toml", ("/srv/recordings", "/run/orbitar")
+    )
     assert "ExecStart=/opt/orbitar/bin/orbitar daemon --config /etc/o.toml" in text
     assert "ReadWritePaths=-/var/lib/orbitar -/srv/recordings" in text
 

@@ -88,7 +88,13 @@ def test_ptys_only_on_request(tmp_path: Path) -> None:
 
 
 @needs_analyze
-def test_systemd_analyze_verify_accepts_the_installed_unit(tmp_path: Path) -> None:
+@pytest.mark.parametrize("recording_dir", ["/var/lib/orbitar/recordings", "/srv/orbitar rec"])
+def test_systemd_analyze_verify_accepts_the_installed_unit(
+    tmp_path: Path, recording_dir: str
+) -> None:
+    config = tmp_path / "etc/orbitar/orbitar.toml"
+    config.parent.mkdir(parents=True)
+    config.write_text(f'[recording]\ndir = "{recording_dir}"\n')
     assert install(tmp_path) == 0
     unit = tmp_path / "etc/systemd/system/orbitar.service"
     result = analyze("verify", str(unit))
@@ -163,3 +169,14 @@ def test_a_program_path_with_blanks_and_percent_is_one_execstart_word(tmp_path: 
     assert f'ExecStart="{tmp_path}/my venv 100%%/orbitar" daemon --config' in unit.read_text()
     result = analyze("verify", str(unit))
     assert result.returncode == 0, result.stderr  # verify finds the program: the word is whole
+
+
+def test_directories_an_existing_config_writes_are_made_writable(tmp_path: Path) -> None:
+    config = tmp_path / "etc/orbitar/orbitar.toml"
+    config.parent.mkdir(parents=True)
+    config.write_text(
+        '[recording]\ndir = "/srv/orbitar rec"\n[control]\nsocket_path = "/run/orbitar/c.sock"\n'
+    )
+    assert install(tmp_path) == 0
+    unit = (tmp_path / "etc/systemd/system/orbitar.service").read_text()
+    assert 'ReadWritePaths=-/var/lib/orbitar "-/srv/orbitar rec"\n' in unit  # /run/orbitar: own
