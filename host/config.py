@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
+import stat
 import tomllib
 import typing
 from collections.abc import Mapping
@@ -43,6 +45,7 @@ SEGMENT_KINDS = ("straight", "arc")
 TRACK_PRESETS = ("runway", "custom")
 MIN_TOKEN_CHARS = 16  # control tokens: long enough that guessing through hello is hopeless
 XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
+CONFIG_MAX_BYTES = 4 << 20  # the default file is ~10 kB; a rig with thousands of segments fits
 
 # M_cr of the paper's eq. 14: the camera in the head frame, millimetres.
 PAPER_M_CR = (
@@ -367,7 +370,14 @@ class Config:
 def load_config(path: str | Path) -> Config:
     """Read and validate a TOML file; ConfigError lists every problem."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        # O_NONBLOCK: opening a FIFO must not wait for a writer (no effect on a regular file).
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as file:
+            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                raise ConfigError([f"{path}: not a regular file"])
+            data = file.read(CONFIG_MAX_BYTES + 1)  # bounded: /dev/zero or a huge file is refused
+        if len(data) > CONFIG_MAX_BYTES:
+            raise ConfigError([f"{path}: larger than {CONFIG_MAX_BYTES} bytes"])
+        text = data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"{path}: cannot read: {exc}"]) from exc
     return loads_config(text)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import typing
 from pathlib import Path
@@ -14,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from host.cli import main as cli_main
-from host.config import Config, config_from_dict, loads_config
+from host.config import CONFIG_MAX_BYTES, Config, config_from_dict, load_config, loads_config
 from host.config_fields import ConfigError
 from host.geometry.head import M_CR_PAPER, orthonormalize_T
 from host.service.preflight import preflight
@@ -84,6 +85,23 @@ def test_control_characters_are_refused_in_every_string() -> None:
     ]
     found = problems('[outputs.freed]\ndestinations = ["127.0.0.1\\u0000:4000"]\n')
     assert found[0].startswith("outputs.freed.destinations[0] = ")
+
+
+def test_files_that_are_not_config_files_are_refused_without_reading_them(tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo.toml"
+    os.mkfifo(fifo)  # opening it must not wait for a writer
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_config(fifo)
+    with pytest.raises(ConfigError, match="not a regular file"):
+        load_config("/dev/zero")  # endless: read boundedly or not at all
+    big = tmp_path / "big.toml"
+    big.write_bytes(b"#" * (CONFIG_MAX_BYTES + 1))
+    with pytest.raises(ConfigError, match="larger than"):
+        load_config(big)
+    binary = tmp_path / "binary.toml"
+    binary.write_bytes(b"\xff\xfe[link]\n")
+    with pytest.raises(ConfigError, match="cannot read: 'utf-8' codec"):
+        load_config(binary)
 
 
 # ---- rotations -----------------------------------------------------------------------------
