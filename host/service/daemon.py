@@ -32,7 +32,6 @@ from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.lock import DaemonLock
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
-from host.service.preflight import check_file
 
 if TYPE_CHECKING:
     from host.bus.publisher import BusPublisher
@@ -187,6 +186,8 @@ class Daemon:
         if self.config_path is None:
             log.warning("reload ignored: the daemon was started without a config file")
             return []
+        from host.service.preflight import check_file  # it imports the wiring, which imports us
+
         try:  # in a thread: name resolution and a model file must not stall the watchdog
             new, report = await asyncio.to_thread(check_file, self.config_path, as_service=True)
         except Exception as exc:  # a reload must never stop the daemon

@@ -14,7 +14,6 @@ import socket
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 
@@ -22,6 +21,7 @@ from host.config import Config, load_config
 from host.config_fields import ConfigError, shown
 from host.geometry.head import orthonormalisation
 from host.outputs.udp import parse_destination
+from host.service import wiring
 
 UNIX_PATH_MAX_BYTES = 107  # sun_path holds 108 bytes on Linux, one of them the final NUL
 ORTHONORMAL_NOTE_MIN = 1e-9  # entries moved less than this: the matrix was a rotation already
@@ -52,12 +52,10 @@ def check_file(path: str | Path, *, as_service: bool = False) -> tuple[Config | 
 
 def preflight(config: Config, *, as_service: bool = False) -> Preflight:
     """Run every start check; `as_service`: permission problems are errors (we are the daemon)."""
-    from host.service import wiring  # here: wiring imports the daemon, which imports this module
-
     report = Preflight()
-    _check_rig(wiring, config, report)
-    _check_model(wiring, config, report)
-    _check_link(wiring, config, report)
+    _check_rig(config, report)
+    _check_model(config, report)
+    _check_link(config, report)
     _check_control(config, report, as_service)
     _check_outputs(config, report)
     _check_camera(config, report)
@@ -65,9 +63,8 @@ def preflight(config: Config, *, as_service: bool = False) -> Preflight:
     return report
 
 
-def _check_rig(wiring: ModuleType, config: Config, report: Preflight) -> None:
-    """The pose pipeline as the frame loop builds it (track, M_cr, mount, surfaces, buffers,
-    intrinsics), without a device; say what was orthonormalised."""
+def _check_rig(config: Config, report: Preflight) -> None:
+    """The pose pipeline as the frame loop builds it, without a device; note orthonormalising."""
     rates = wiring.stream_rates(config.link.kind, bool(config.rangefinder.surfaces))
     try:
         wiring.build_pose_source(config, rates, config.camera.exposure_latency_ms)
@@ -84,7 +81,7 @@ def _check_rig(wiring: ModuleType, config: Config, report: Preflight) -> None:
             report.notes.append(f"{key}: {change.describe()}")
 
 
-def _check_model(wiring: ModuleType, config: Config, report: Preflight) -> None:
+def _check_model(config: Config, report: Preflight) -> None:
     """The workpiece model loads (the daemon checks it even without a camera)."""
     try:
         wiring.build_model(config)
@@ -92,7 +89,7 @@ def _check_model(wiring: ModuleType, config: Config, report: Preflight) -> None:
         report.errors.append(str(exc))
 
 
-def _check_link(wiring: ModuleType, config: Config, report: Preflight) -> None:
+def _check_link(config: Config, report: Preflight) -> None:
     """The transport can be built; a device that is not there yet is only a note."""
     try:
         wiring.build_transport(config)
