@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import re
 import typing
@@ -18,7 +19,7 @@ from host.cli import main as cli_main
 from host.config import CONFIG_MAX_BYTES, Config, config_from_dict, load_config, loads_config
 from host.config_fields import ConfigError
 from host.geometry.head import M_CR_PAPER, orthonormalize_T
-from host.service.preflight import preflight
+from host.service.preflight import check_file, preflight
 
 KEY = r'([A-Za-z0-9_-]+|"(?:[^"\\]|\\.)*"?)'  # bare or quoted (a long one is cut)
 PROBLEM_RE = re.compile(rf"^{KEY}(\.{KEY}|\[\d+\])*( = .*)?: \S", re.DOTALL)
@@ -212,6 +213,33 @@ def test_any_value_at_any_key_is_named_never_raised(path: tuple[str, ...], value
         assert PROBLEM_RE.match(line), line
 
 
+def toml_value(value: Any) -> str:
+    """A value written as TOML (inline tables and arrays, JSON-style escaped strings)."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)  # inf, -inf and nan are spelled as TOML spells them
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{json.dumps(k)} = {toml_value(v)}" for k, v in value.items()) + "}"
+    return str(value.isoformat())  # a datetime
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(path=st.sampled_from(KEYS), value=TOML_VALUES)
+def test_config_check_on_any_file_text_names_keys_and_never_raises(
+    tmp_path_factory: pytest.TempPathFactory, path: tuple[str, ...], value: Any
+) -> None:
+    file = tmp_path_factory.mktemp("fuzz") / "orbitar.toml"
+    file.write_text(f"{'.'.join(path)} = {toml_value(value)}\n", encoding="utf-8")
+    _, report = check_file(file)  # what `orbitar config check` and the daemon's start run
+    for line in report.errors + report.notes:
+        assert PROBLEM_RE.match(line) or line.startswith("TOML syntax: "), line
+
+
 def test_the_fuzz_reaches_every_section() -> None:
     sections = {p[0] for p in KEYS}
     assert {"link", "track", "head", "rangefinder", "control", "outputs"} <= sections
@@ -221,7 +249,12 @@ def test_the_fuzz_reaches_every_section() -> None:
 
 
 @pytest.mark.slow
-@settings(max_examples=5000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=3000, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(path=st.sampled_from(KEYS), value=TOML_VALUES)
-def test_any_value_at_any_key_soak(path: tuple[str, ...], value: Any) -> None:
+def test_any_value_at_any_key_soak(
+    tmp_path_factory: pytest.TempPathFactory, path: tuple[str, ...], value: Any
+) -> None:
     test_any_value_at_any_key_is_named_never_raised.hypothesis.inner_test(path, value)  # type: ignore[attr-defined]
+    test_config_check_on_any_file_text_names_keys_and_never_raises.hypothesis.inner_test(  # type: ignore[attr-defined]
+        tmp_path_factory, path, value
+    )
