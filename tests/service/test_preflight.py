@@ -6,6 +6,7 @@ import asyncio
 import os
 import signal
 import sys
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -169,47 +170,53 @@ async def next_freed_packet(running: Running) -> bytes:
     return await asyncio.wait_for(running.freed.packets.get(), 10.0)
 
 
-async def test_sighup_with_each_bad_file_keeps_the_daemon_and_its_settings(
-    tmp_path: Path,
-) -> None:
+@pytest.fixture
+async def daemon(tmp_path: Path) -> AsyncIterator[Running]:
+    """A daemon on the fake controller, killed at the end if a test left it running."""
     running, transport = await start_daemon(tmp_path)
     try:
-        await running.notes.wait_for("READY=1")
-        base = running.config.read_text()
-        async with await connect(tmp_path / "ctl.sock") as client:
-            await client.request("home")
-            await client.request("move", position_mm=500.0, speed_mm_s=200.0)
-        await next_freed_packet(running)
-        for n, (name, (text, expected)) in enumerate(bad_reloads(base, tmp_path).items(), 1):
-            running.config.write_text(text)
-            running.proc.send_signal(signal.SIGHUP)
-            log = await wait_logged(running, "reload rejected", n)
-            rejected = log.split("reload rejected")[n]
-            assert expected in rejected.split("\n")[0], (name, rejected)
-        assert "Traceback" not in log
-        assert "reloaded applied" not in log  # nothing of a bad file was taken
-        await next_freed_packet(running)  # the running outputs were not touched
-        async with await connect(tmp_path / "ctl.sock") as client:
-            status = await client.request("status")
-            assert status["service"]["phase"] == "running"
-        # Resolves, so the preflight passes, but cannot be opened (broadcast without permission):
-        # the output is reported as not running, and the daemon goes on.
-        running.config.write_text(base.replace('["127.0.0.1:', '["255.255.255.255:'))
-        running.proc.send_signal(signal.SIGHUP)
-        await wait_logged(running, "output not started output=freed", 1)
-        await wait_logged(running, "reloaded applied=outputs", 1)
-        async with await connect(tmp_path / "ctl.sock") as client:
-            status = await client.request("status")
-            assert "error" in status["service"]["freed"], status["service"]
-        running.config.write_text(base.replace('level = "info"', 'level = "debug"'))
-        running.proc.send_signal(signal.SIGHUP)
-        await wait_logged(running, "reloaded applied=log,outputs", 1)
-        await next_freed_packet(running)  # a good file brings the output back
-        running.proc.send_signal(signal.SIGTERM)
-        assert await asyncio.wait_for(running.proc.wait(), 5) == 0
+        yield running
     finally:
         if running.proc.returncode is None:
             running.proc.kill()
             await running.proc.wait()
         running.notes.sock.close()
         transport.close()
+
+
+async def test_sighup_with_each_bad_file_keeps_the_daemon_and_its_settings(
+    daemon: Running, tmp_path: Path
+) -> None:
+    await daemon.notes.wait_for("READY=1")
+    base = daemon.config.read_text()
+    async with await connect(tmp_path / "ctl.sock") as client:
+        await client.request("home")
+        await client.request("move", position_mm=500.0, speed_mm_s=200.0)
+    await next_freed_packet(daemon)
+    for n, (name, (text, expected)) in enumerate(bad_reloads(base, tmp_path).items(), 1):
+        daemon.config.write_text(text)
+        daemon.proc.send_signal(signal.SIGHUP)
+        log = await wait_logged(daemon, "reload rejected", n)
+        rejected = log.split("reload rejected")[n]
+        assert expected in rejected.split("\n")[0], (name, rejected)
+    assert "Traceback" not in log
+    assert "reloaded applied" not in log  # nothing of a bad file was taken
+    await next_freed_packet(daemon)  # the running outputs were not touched
+    async with await connect(tmp_path / "ctl.sock") as client:
+        status = await client.request("status")
+        assert status["service"]["phase"] == "running"
+    # Resolves, so the preflight passes, but cannot be opened (broadcast without permission):
+    # the output is reported as not running, and the daemon goes on.
+    daemon.config.write_text(base.replace('["127.0.0.1:', '["255.255.255.255:'))
+    daemon.proc.send_signal(signal.SIGHUP)
+    await wait_logged(daemon, "output not started output=freed", 1)
+    await wait_logged(daemon, "reloaded applied=outputs", 1)
+    async with await connect(tmp_path / "ctl.sock") as client:
+        status = await client.request("status")
+        assert "error" in status["service"]["freed"], status["service"]
+    daemon.config.write_text(base.replace('level = "info"', 'level = "debug"'))
+    daemon.proc.send_signal(signal.SIGHUP)
+    await wait_logged(daemon, "reloaded applied=log,outputs", 1)
+    await next_freed_packet(daemon)  # a good file brings the output back
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert await asyncio.wait_for(daemon.proc.wait(), 5) == 0
