@@ -14,7 +14,7 @@ import pytest
 from host.cli import main as cli_main
 from host.config import Config, load_config
 from host.service import install as install_module
-from host.service.unit import render_unit, under_home
+from host.service.unit import installed_executable, render_unit, under_home
 
 ANALYZE = shutil.which("systemd-analyze")
 needs_analyze = pytest.mark.skipif(ANALYZE is None, reason="systemd-analyze is not installed")
@@ -180,3 +180,16 @@ def test_directories_an_existing_config_writes_are_made_writable(tmp_path: Path)
     assert install(tmp_path) == 0
     unit = (tmp_path / "etc/systemd/system/orbitar.service").read_text()
     assert 'ReadWritePaths=-/var/lib/orbitar "-/srv/orbitar rec"\n' in unit  # /run/orbitar: own
+
+
+def test_execstart_is_the_entry_point_that_is_installed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert cli_main(["install-service", "--root", str(tmp_path)]) == 0
+    unit = (tmp_path / "etc/systemd/system/orbitar.service").read_text()
+    assert f"ExecStart={ORBITAR} daemon" in unit  # the venv's script beside this python
+    monkeypatch.setattr(sys, "executable", str(tmp_path / "python"))
+    monkeypatch.setattr(sys, "argv", [str(tmp_path / "cli.py")])
+    monkeypatch.setenv("PATH", str(tmp_path / "nothing"))
+    with pytest.raises(FileNotFoundError, match="pass --exec"):
+        installed_executable()
