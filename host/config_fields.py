@@ -14,8 +14,6 @@ from collections.abc import Callable
 from dataclasses import field
 from typing import Any
 
-from host.geometry.head import rotation_problem
-
 SOCKET_MODE_RE = re.compile(r"^0?[0-7]{3}$")
 BARE_KEY_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
@@ -128,6 +126,8 @@ def parse_matrix4(value: Any) -> tuple[tuple[float, ...], ...]:
 
 def parse_rigid4(value: Any) -> tuple[tuple[float, ...], ...]:
     """A 4×4 transform whose 3×3 block is a rotation within the rounding of printed figures."""
+    from host.geometry.head import rotation_problem  # numpy: only when a file sets a matrix
+
     matrix = parse_matrix4(value)
     problem = rotation_problem(matrix)
     if problem is not None:
