@@ -508,7 +508,7 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
         errors.append("head.tilt_min_deg: must be below head.tilt_max_deg")
     track_table = table.get("track")
     has_segments = isinstance(track_table, dict) and "segments" in track_table
-    if track.preset == "custom" and not has_segments:
+    if track.preset == "custom" and not (has_segments and track.segments):
         errors.append('track.segments: required when track.preset = "custom"')
     if track.preset != "custom" and has_segments:
         errors.append(f'track.segments: given with preset {track.preset!r}; use "custom"')

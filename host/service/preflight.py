@@ -69,8 +69,8 @@ def _check_rig(config: Config, report: Preflight) -> None:
     try:
         wiring.build_pose_source(config, rates, config.camera.exposure_latency_ms)
         wiring.build_camera(config)
-    except ValueError as exc:  # WiringError names the section; a matrix error names itself
-        report.errors.append(str(exc))
+    except ValueError as exc:  # WiringError names the section
+        report.errors.append(_keyed(exc))
         return
     for key, matrix in (
         ("head.m_cr", config.head.m_cr),
@@ -86,24 +86,53 @@ def _check_model(config: Config, report: Preflight) -> None:
     try:
         wiring.build_model(config)
     except wiring.WiringError as exc:
-        report.errors.append(str(exc))
+        report.errors.append(_keyed(exc))
 
 
 def _check_link(config: Config, report: Preflight) -> None:
-    """The transport can be built; a device that is not there yet is only a note."""
+    """The transport can be built; a device or host that is not there yet is only a note."""
     try:
         wiring.build_transport(config)
     except wiring.WiringError as exc:
-        report.errors.append(str(exc))
+        report.errors.append(_link_keyed(str(exc)))
         return
     link = config.link
     device, key = (
         (link.can_channel, "link.can_channel") if link.kind == "can" else (link.url, "link.url")
     )
+    waits = "(the daemon waits for it)"
     if device.startswith("/dev/") and not os.path.exists(device):
-        report.notes.append(
-            f"{key} = {shown(device)}: no such device yet (the daemon waits for it)"
+        report.notes.append(f"{key} = {shown(device)}: no such device yet {waits}")
+    scheme, _, rest = device.partition("://")
+    if scheme in ("socket", "rfc2217") and ":" in rest:
+        host, _, port = rest.split("/")[0].split("?")[0].rpartition(":")
+        problem = _resolve_problem(
+            host.strip("[]"), int(port) if port.isdigit() else 0, passive=False
         )
+        if problem:
+            report.notes.append(f"{key} = {shown(device)}: {problem} {waits}")
+
+
+# The transport names its options; the file names them in [link].
+TRANSPORT_KEYS = {
+    "url": "url",
+    "baudrate": "baud",
+    "dest_addr64": "xbee_address",
+    "api_mode": "xbee_api_mode",
+    "interface": "can_interface",
+    "channel": "can_channel",
+    "bitrate": "can_bitrate",
+    "node_id": "node_id",
+}
+
+
+def _link_keyed(message: str) -> str:
+    """`[link]: transport (kind): OPTION …` as `link.KEY: OPTION …`."""
+    text = message.removeprefix("[link]: ")
+    _, sep, detail = text.partition("): ")
+    option = detail.split(" ", 1)[0].split(":")[0].removeprefix("transport.") if sep else ""
+    key = TRANSPORT_KEYS.get(option)
+    return f"link.{key}: {detail}" if key else f"link: {text}"
 
 
 def _check_control(config: Config, report: Preflight, as_service: bool) -> None:
@@ -193,6 +222,15 @@ def _check_recording(config: Config, report: Preflight) -> None:
             f"recording.dir = {shown(rec.dir)}: {ancestor} is not a writable directory for uid "
             f"{os.getuid()} (the daemon starts without recording)"
         )
+
+
+def _keyed(exc: Exception) -> str:
+    """A wiring error as a problem line: its `[section]: ` prefix becomes the section's key."""
+    text = str(exc)
+    if text.startswith("[") and "]: " in text:
+        section, _, rest = text[1:].partition("]: ")
+        return f"{section}: {rest}"
+    return text
 
 
 def _resolve_problem(host: str, port: int, *, passive: bool) -> str | None:

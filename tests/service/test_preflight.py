@@ -34,6 +34,15 @@ START_FAILURES = {
         '[control]\nsocket_group = "no-such-group-x"\n',
         "control.socket_group = 'no-such-group-x': no such group",
     ),
+    "not a python-can interface": (
+        '[link]\nkind = "can"\ncan_interface = "bogus"\n',
+        "link.can_interface: interface 'bogus' is not a python-can interface",
+    ),
+    "not a serial url": ('[link]\nurl = "bogus://x"\n', "link.url: url 'bogus://x' is neither"),
+    "custom track without segments": (
+        '[track]\npreset = "custom"\nsegments = []\n',
+        'track.segments: required when track.preset = "custom"',
+    ),
     "socket path is a directory": (
         '[control]\nsocket_path = "/tmp"\n',
         "control.socket_path = '/tmp': exists and is not a socket",
@@ -67,6 +76,9 @@ def test_config_check_passes_a_good_file_and_shows_notes(
     assert captured.out == f"{path}: ok\n"
     assert "note: link.url = '/dev/ttyUSB97': no such device yet" in captured.err
     assert "camera.source = " in captured.err
+    path.write_text('[link]\nkind = "xbee"\nurl = "socket://nohost.invalid:9750"\n')
+    assert cli_main(["config", "check", str(path)]) == 0  # the link is retried until it resolves
+    assert "link.url = 'socket://nohost.invalid:9750': cannot resolve" in capsys.readouterr().err
 
 
 def test_an_output_receiver_that_does_not_resolve_is_a_note(
