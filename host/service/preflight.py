@@ -14,6 +14,7 @@ import socket
 import stat
 from dataclasses import dataclass, field
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import numpy as np
 
@@ -26,6 +27,18 @@ from host.service import wiring
 UNIX_PATH_MAX_BYTES = 107  # sun_path holds 108 bytes on Linux, one of them the final NUL
 ORTHONORMAL_NOTE_MIN = 1e-9  # entries moved less than this: the matrix was a rotation already
 NO_FILE_SOURCES = ("sim", "none")
+NETWORK_LINK_SCHEMES = ("socket", "rfc2217")  # pyserial URLs that name a host
+# The transport names its options; the file names them in [link].
+TRANSPORT_KEYS = {
+    "url": "url",
+    "baudrate": "baud",
+    "dest_addr64": "xbee_address",
+    "api_mode": "xbee_api_mode",
+    "interface": "can_interface",
+    "channel": "can_channel",
+    "bitrate": "can_bitrate",
+    "node_id": "node_id",
+}
 
 
 @dataclass
@@ -103,27 +116,11 @@ def _check_link(config: Config, report: Preflight) -> None:
     waits = "(the daemon waits for it)"
     if device.startswith("/dev/") and not os.path.exists(device):
         report.notes.append(f"{key} = {shown(device)}: no such device yet {waits}")
-    scheme, _, rest = device.partition("://")
-    if scheme in ("socket", "rfc2217") and ":" in rest:
-        host, _, port = rest.split("/")[0].split("?")[0].rpartition(":")
-        problem = _resolve_problem(
-            host.strip("[]"), int(port) if port.isdigit() else 0, passive=False
-        )
+    url = urlsplit(device)
+    if url.scheme in NETWORK_LINK_SCHEMES and url.hostname:
+        problem = _resolve_problem(url.hostname, 0, passive=False)
         if problem:
             report.notes.append(f"{key} = {shown(device)}: {problem} {waits}")
-
-
-# The transport names its options; the file names them in [link].
-TRANSPORT_KEYS = {
-    "url": "url",
-    "baudrate": "baud",
-    "dest_addr64": "xbee_address",
-    "api_mode": "xbee_api_mode",
-    "interface": "can_interface",
-    "channel": "can_channel",
-    "bitrate": "can_bitrate",
-    "node_id": "node_id",
-}
 
 
 def _link_keyed(message: str) -> str:
