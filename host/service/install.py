@@ -74,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
+    if not os.path.isabs(args.config):
+        print(f"orbitar install-service: --config {args.config}: must be absolute", file=sys.stderr)
+        return 1
     try:
         executable = args.executable or installed_executable()
     except FileNotFoundError as exc:

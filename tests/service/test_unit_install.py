@@ -55,6 +55,7 @@ def test_an_existing_config_is_kept_and_dry_run_writes_nothing(
     assert install(tmp_path) == 0
     assert config.read_text() == '[log]\nlevel = "debug"\n'
     assert "keep " in capsys.readouterr().out
+    assert install(tmp_path, "--config", "orbitar.toml") == 1  # ExecStart needs an absolute path
     dry = tmp_path / "dry"
     assert install(dry, "--dry-run") == 0
     assert not dry.exists()
