@@ -54,6 +54,7 @@ COMMANDS: dict[str, Command] = {
         "add_parser",
         "run the emulated controller behind a pty, TCP, XBee or CAN link",
     ),
+    "install-service": Command("host.service.install", "add_parser", "set up the systemd service"),
     "fleet": Command(
         "host.bus.fleet", "add_parser", "list the rigs on the bus and their state, live"
     ),

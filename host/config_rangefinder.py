@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from host.config_fields import parse_matrix4, parse_vector3, spec
+from host.config_fields import parse_rigid4, parse_vector3, spec
 
 IDENTITY_4 = (
     (1.0, 0.0, 0.0, 0.0),
@@ -40,7 +40,7 @@ class RangefinderConfig:
 
     mount: tuple[tuple[float, ...], ...] = spec(
         IDENTITY_4,
-        parse=parse_matrix4,
+        parse=parse_rigid4,
         doc="rangefinder in the head frame (T_r_l), rows, mm; the beam runs along its +z",
     )
     noise_mm: float = spec(1.0, lo=0.001, hi=1000.0, doc="σ of one reading")

@@ -18,10 +18,9 @@ import sys
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from host.config import Config, default_config_text, load_config
-from host.config_fields import ConfigError
+from host.config import Config, default_config_text
 from host.control.client import ControlClient, ControlRequestError
-from host.service.unit import DEFAULT_CONFIG, render_unit
+from host.service.unit import DEFAULT_CONFIG, installed_executable, render_unit
 
 SOCKET_ENV = "ORBITAR_SOCKET"
 CLEAR_SCREEN = "\x1b[H\x1b[2J"
@@ -228,11 +227,15 @@ def _render(view: dict[str, Any], out: TextIO) -> None:
 
 
 def run_config_check(args: argparse.Namespace) -> int:
-    """`orbitar config check PATH`."""
-    try:
-        load_config(args.path)
-    except ConfigError as exc:
-        print(f"{args.path}: {exc}", file=sys.stderr)
+    """`orbitar config check PATH`: the file, then every check the daemon's start makes."""
+    from host.service.preflight import check_file
+
+    _, report = check_file(args.path)
+    for note in report.notes:
+        print(f"{args.path}: note: {note}", file=sys.stderr)
+    if not report.ok:
+        problems = "\n  ".join(report.errors)
+        print(f"{args.path}: invalid configuration:\n  {problems}", file=sys.stderr)
         return 2
     emit(f"{args.path}: ok\n")
     return 0
@@ -246,7 +249,10 @@ def run_config_default(args: argparse.Namespace) -> int:
 
 def run_systemd_unit(args: argparse.Namespace) -> int:
     """`orbitar systemd-unit [--exec PATH] [--config PATH]`."""
-    executable = args.executable or "/usr/bin/orbitar"
+    try:
+        executable = args.executable or installed_executable()
+    except FileNotFoundError as exc:
+        return _fail(str(exc))
     emit(render_unit(executable, args.config))
     return 0
 

@@ -20,8 +20,7 @@ from collections.abc import Callable, Coroutine
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from host.config import Config, load_config
-from host.config_fields import ConfigError
+from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
@@ -187,14 +186,22 @@ class Daemon:
         if self.config_path is None:
             log.warning("reload ignored: the daemon was started without a config file")
             return []
-        try:
-            new = load_config(self.config_path)
-        except ConfigError as exc:
-            log.error("reload rejected, keeping the running settings", extra={"kv": {"why": exc}})
+        from host.service.preflight import check_file  # it imports the wiring, which imports us
+
+        try:  # in a thread: name resolution and a model file must not stall the watchdog
+            new, report = await asyncio.to_thread(check_file, self.config_path, as_service=True)
+        except Exception as exc:  # a reload must never stop the daemon
+            log.exception("reload failed, keeping the running settings", extra={"kv": {"why": exc}})
             return []
+        if new is None or not report.ok:
+            why = "; ".join(report.errors)
+            log.error("reload rejected, keeping the running settings", extra={"kv": {"why": why}})
+            return []
+        for note in report.notes:
+            log.warning("configuration note", extra={"kv": {"note": note}})
         try:
             applied = await self._apply(new)
-        except OSError as exc:
+        except Exception as exc:  # e.g. OSError opening an output; never fatal to the daemon
             log.error("reload could not open an output", extra={"kv": {"error": exc}})
             applied = []
         skipped = [s for s in RESTART_SECTIONS if getattr(new, s) != getattr(self.config, s)]

@@ -13,6 +13,7 @@ from host.config import Config, load_config
 from host.config_fields import ConfigError
 from host.service.lock import EXIT_ALREADY_RUNNING, AlreadyRunning
 from host.service.logsetup import setup_logging
+from host.service.preflight import preflight
 
 if TYPE_CHECKING:
     from host.service.daemon import ControllerFactory, FrameLoopFactory
@@ -39,11 +40,20 @@ def run(
     except ConfigError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
+    report = preflight(config, as_service=True)  # the same checks as `orbitar config check`
+    if not report.ok:
+        print(
+            "orbitar daemon: " + "\n  ".join(["invalid configuration:", *report.errors]),
+            file=sys.stderr,
+        )
+        return 2
     try:
         setup_logging(args.log_level or config.log.level)
     except ValueError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        log.warning("configuration note", extra={"kv": {"note": note}})
     if controller_factory is None:
         from host.service import wiring  # the real link, camera and pose loop: only to run
 
