@@ -24,6 +24,7 @@ from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
+from host.frames.loop import frame_loop_status
 from host.link.common import LinkState
 from host.link.snapshot import ControllerChange, Snapshot
 from host.outputs.tracking import TrackingOutputs
@@ -32,6 +33,7 @@ from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.lock import DaemonLock
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
+from host.station import attach_station
 
 if TYPE_CHECKING:
     from host.bus.publisher import BusPublisher
@@ -46,7 +48,9 @@ CalibrationProvider = Callable[[], dict[str, Any]]
 
 STOP_ACK_TIMEOUT_S = 0.8  # SIGTERM budget: stop ack + link close + socket close < 2 s
 LINK_CLOSE_TIMEOUT_S = 0.4
-RESTART_SECTIONS = ("link", "track", "head", "camera", "model", "registration", "control", "bus")
+RESTART_SECTIONS = (
+    "link", "track", "head", "camera", "model", "registration", "control", "bus", "ui",
+)  # fmt: skip
 
 
 class Phase(enum.Enum):
@@ -109,6 +113,7 @@ class Daemon:
             else None
         )
         self.server = ControlServer(self._op_context(), config.control)
+        self.station = attach_station(self) if config.ui.enabled else None
         self._stop = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
         self._started_s = time.monotonic()
@@ -147,6 +152,8 @@ class Daemon:
             self.outputs.send(sample)  # FreeD is held until homed, OpenTrackIO says it
             if self.bus is not None:
                 self.bus.publish_pose(sample)
+            if self.station is not None:
+                self.station.on_pose(sample)
             self.record(KIND_POSE, sample.t_ns, data)
         except Exception as exc:  # an output must never break the frame loop
             self.output_errors += 1
@@ -179,6 +186,7 @@ class Daemon:
             "bus": self.bus.stats() if self.bus is not None else None,
             "recording": self.recorder.status() if self.recorder else {"state": "off"},
             "output_errors": self.output_errors,
+            "frames": frame_loop_status(self.frame_loop),
         }
 
     async def reload(self) -> list[str]:
@@ -231,6 +239,8 @@ class Daemon:
     async def _start(self) -> None:
         """Open the socket and the outputs, then start the background tasks."""
         await self.server.start()
+        if self.station is not None:
+            await self.station.start()
         await self.outputs.start(self.config)
         self._restart_recorder(self.config)
         self._start_bus()
@@ -249,6 +259,8 @@ class Daemon:
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.station is not None:
+            await self.station.close()
         await self._halt_and_close()
         await self.server.close()
         self.outputs.close()
