@@ -252,7 +252,7 @@ class Station:
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         """A page's live connection."""
-        ws = web.WebSocketResponse(heartbeat=5.0, max_msg_size=MAX_MESSAGE_BYTES)
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES)  # liveness: the page's pings
         await ws.prepare(request)
         session = PageSession(self, ws)
         self.sessions.add(session)

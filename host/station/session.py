@@ -36,6 +36,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 HELLO_TIMEOUT_S = 5.0
+SILENCE_TIMEOUT_S = 10.0  # pages ping every 2 s: a silent one is gone (no FIN on a dead network)
 ACK_TIMEOUT_S = 1.0  # a page that never acknowledges still gets a frame a second
 MAX_MESSAGE_BYTES = 64 * 1024
 CLOSE_UNAUTHORIZED = 4401  # application close code: bad or missing token
@@ -69,6 +70,7 @@ class PageSession:
         self.role = Role.NONE
         self.jogging = False
         self.last_hold_s = 0.0
+        self.last_heard_s = time.monotonic()
         self.deadman_stops = 0
         self.frames_sent = 0
         self._replies: deque[dict[str, Any]] = deque()
@@ -124,6 +126,7 @@ class PageSession:
     async def _read_loop(self) -> None:
         """Handle the page's messages until it closes."""
         async for msg in self.ws:
+            self.last_heard_s = time.monotonic()
             if msg.type is not WSMsgType.TEXT:
                 continue
             try:
@@ -194,12 +197,16 @@ class PageSession:
         self._wake.set()
 
     async def _deadman_loop(self) -> None:
-        """Stop a jog whose hold messages have paused for the dead-man time."""
+        """Stop a jog whose hold messages have paused for the dead-man time; drop silent pages."""
         limit_s = self.station.config.deadman_ms / 1000.0
         while True:
             await asyncio.sleep(limit_s / 5)
-            if self.jogging and time.monotonic() - self.last_hold_s > limit_s:
+            now = time.monotonic()
+            if self.jogging and now - self.last_hold_s > limit_s:
                 await self._deadman_stop("hold messages stopped")
+            if now - self.last_heard_s > SILENCE_TIMEOUT_S:
+                await self.ws.close(code=1001, message=b"page silent")
+                return
 
     async def _deadman_stop(self, why: str) -> None:
         """Stop the trolley on the page's behalf."""
