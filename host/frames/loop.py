@@ -100,8 +100,13 @@ class FrameLoop(Generic[ResultT]):
             "source_ended": self._ended,
             "latency_ms_p50": None if math.isnan(p50) else round(p50, 2),
             "latency_ms_p95": None if math.isnan(p95) else round(p95, 2),
-            "source": describe() if callable(describe) else {},
+            "source": describe() if callable(describe) else self._plain_source(),
         }
+
+    def _plain_source(self) -> dict[str, Any]:
+        """What can be said of a source that does not describe itself."""
+        state = "ended" if self._ended else "running"
+        return {"source": type(self.source).__name__, "kind": "camera", "state": state}
 
     def stop(self) -> None:
         """Ask the loop to end after the frame in hand (callable from any thread)."""

@@ -433,13 +433,20 @@ def open_camera(config: Config) -> FrameSource | None:
 
 
 def frame_loop_factory(
-    config: Config, controller: ControllerLike, pose_sink: PoseSink, record_tap: RecordTap
+    config: Config,
+    controller: ControllerLike,
+    pose_sink: PoseSink,
+    record_tap: RecordTap,
+    camera: FrameSource | None = None,
 ) -> FrameLoopLike:
-    """The pose loop on the controller's samples: per camera frame, or at a fixed rate."""
+    """The pose loop on the controller's samples: per camera frame, or at a fixed rate.
+
+    `camera` overrides `[camera] source` (the demo's simulated camera lives in its process).
+    """
     if not isinstance(controller, Controller):
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
-    camera = open_camera(config)
+    camera = camera or open_camera(config)
     latency_ms = config.camera.exposure_latency_ms if camera is not None else 0.0
     poses, feed = build_pose_source(
         config, config_stream_rates(config), latency_ms, controller.chain_pitch_mm

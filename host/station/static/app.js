@@ -121,8 +121,11 @@ async function onFrame(buffer) {
   if (latency !== null) { state.latencies.push(latency); if (state.latencies.length > 300) state.latencies.shift(); }
   const now = performance.now(); state.fpsTimes.push(now);
   while (state.fpsTimes.length && state.fpsTimes[0] < now - 2000) state.fpsTimes.shift();
-  $("viewnote").textContent = header.registered ? "" : "no pose for this frame: overlay withheld";
-  $("viewnote").hidden = header.registered;
+  const homed = !state.status || (state.status.link || {}).homed !== false;
+  let note = header.registered ? "" : "no pose for this frame: overlay withheld";
+  if (header.registered && !homed) note = "not homed: the overlay assumes the trolley at home until Home is run";
+  $("viewnote").textContent = note;
+  $("viewnote").hidden = !note;
 }
 
 function pageFps() {
@@ -310,6 +313,7 @@ function onStatus(msg) {
     ["state", ctrl.state || "—", ctrl.state === "FAULT" || ctrl.state === "ESTOP" ? "bad" : ""],
     ["faults", (ctrl.fault_names || []).join(", ") || "none", (ctrl.fault_names || []).length ? "bad" : "ok"],
     ["position", fmt(ctrl.position_mm, 1, " mm")],
+    ["homed", link.homed ? "yes" : "no — press Home to reference the track", link.homed ? "ok" : "bad"],
     ["track s (corrected)", fmt(link.track_s_mm, 1, " mm")],
     ["head pan / tilt", `${fmt(deg(head[0]), 2, "°")} / ${fmt(deg(head[1]), 2, "°")}`],
     ["chain scale", link.chain_scale === undefined ? "— (no references)" : fmt(link.chain_scale, 5)],
