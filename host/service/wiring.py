@@ -179,8 +179,16 @@ def controller_factory(
         streams_hz=config_stream_rates(config),
     )
     ctrl.add_sink(RecordingSink(record_tap))
+    ctrl.add_stats(lambda: clock_stats(ctrl))
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
     return ctrl
+
+
+def clock_stats(ctrl: Controller) -> dict[str, Any]:
+    """The clock sync's error and drift, for the station's and the terminal's status."""
+    clock = ctrl.session.clock.estimate()
+    sigma_us = round(clock.sigma_ns / 1e3, 3) if clock.probes_used else None
+    return {"clock_sigma_us": sigma_us, "clock_drift_ppm": round(clock.drift_ppm, 3)}
 
 
 def config_stream_rates(config: Config) -> dict[Stream, int]:
