@@ -44,6 +44,7 @@ CAMERA_FRESH_NS = 1_000_000_000  # poses alone are drawn only when no frame came
 PLAN_STEP_MM = 50.0
 LATENCY_WINDOW = 512
 MJPEG_BOUNDARY = "orbitarframe"
+SHUTDOWN_TIMEOUT_S = 1.0  # within the daemon's 2 s SIGTERM budget
 SECURITY_HEADERS = {
     "Content-Security-Policy": (
         "default-src 'self'; img-src 'self' blob: data:; connect-src 'self'; "
@@ -91,6 +92,7 @@ class Station:
         self._last_frame_ns = 0
         self._runner: web.AppRunner | None = None
         self._status_task: asyncio.Task[None] | None = None
+        self._streams: set[asyncio.Task[Any]] = set()  # MJPEG handlers, ended at shutdown
 
     @property
     def url(self) -> str:
@@ -108,7 +110,9 @@ class Station:
         app.router.add_get("/frame.jpg", self._snapshot)
         app.router.add_static("/static/", STATIC_DIR, follow_symlinks=False)
         app.on_shutdown.append(self._close_pages)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        self._runner = web.AppRunner(
+            app, access_log=None, handle_signals=False, shutdown_timeout=SHUTDOWN_TIMEOUT_S
+        )
         await self._runner.setup()
         ui = self.config
         site = web.TCPSite(self._runner, ui.host, ui.port, ssl_context=self._tls())
@@ -284,6 +288,9 @@ class Station:
         await response.prepare(request)
         slot = self.hub.attach()
         self.stats["mjpeg_clients"] += 1
+        task = asyncio.current_task()
+        if task is not None:
+            self._streams.add(task)
         try:
             while True:
                 frame = await slot.take()
@@ -293,10 +300,11 @@ class Station:
                     f"X-Exposure-Ms: {frame.exposure_ns / 1e6:.3f}\r\n\r\n"
                 ).encode()
                 await response.write(head + frame.jpeg + b"\r\n")
-        except (ConnectionError, asyncio.CancelledError):
+        except ConnectionError:
             pass  # the reader went away (aiohttp's ClientConnectionResetError is one)
         finally:
             self.hub.detach(slot)
+            self._streams.discard(task)
         return response
 
     async def _snapshot(self, request: web.Request) -> web.StreamResponse:
@@ -309,7 +317,9 @@ class Station:
         return web.Response(body=frame.jpeg, content_type="image/jpeg")
 
     async def _close_pages(self, app: web.Application) -> None:
-        """Daemon shutdown: close the pages (each stops its own jog)."""
+        """Daemon shutdown: close the pages (each stops its own jog) and the MJPEG streams."""
+        for task in list(self._streams):
+            task.cancel()
         for session in list(self.sessions):
             with contextlib.suppress(Exception):
                 await session.ws.close(code=1001, message=b"daemon stopping")

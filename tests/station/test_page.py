@@ -171,6 +171,15 @@ async def test_page_loads_offline_and_the_overlay_sits_on_the_projection(
     latency = await page.evaluate("orbitar.lastLatencyMs")
     assert latency is not None  # shown on the page
     assert 0 < latency < 1000
+    # The information summary: a part's panel, and the distance between two picked points.
+    await page.get_by_role("button", name="wrist", exact=True).click()
+    assert "160 × 120 × 120 mm" in await page.locator("#part-panel").text_content()
+    await page.locator('#points button[data-point="P1"]').click()
+    await page.locator('#points button[data-point="P3"]').click()
+    by_name = {p.name: np.array(p.position_mm) for p in parts.points}
+    distance = float(np.linalg.norm(by_name["P1"] - by_name["P3"]))
+    assert f"P1 → P3: {distance:.1f} mm" in await page.locator("#measure").text_content()
+    await page.screenshot(path=str(ARTIFACTS / "measure.png"), full_page=True)
     await page.close()
 
 

@@ -19,9 +19,12 @@ from host.config import Config, config_from_dict
 from host.config_fields import ConfigError
 from host.control.fake import FakeController
 from host.control.ops import OpContext
-from host.frames.sources import SourceState, VideoCaptureSource
+from host.frames.loop import FrameLoop
+from host.frames.registrar import Registration
+from host.frames.sources import Frame, SourceState, VideoCaptureSource
 from host.geometry.camera import CameraModel
 from host.geometry.model import box
+from host.registration.pose_buffer import LookupStatus
 from host.station.hub import FrameHub
 from host.station.parts import BUILTIN_SIDECAR, PartsError, load_parts, parse_parts
 from host.station.render import ViewInput, ViewRenderer
@@ -262,3 +265,106 @@ def test_a_video_file_plays_at_its_frame_rate_and_its_end_is_reported(tmp_path: 
     assert source.state is SourceState.ENDED
     assert source.describe()["state"] == "ended"
     assert source.describe()["kind"] == "file"
+
+
+async def test_a_tap_on_the_plan_moves_through_the_move_op(
+    station: tuple[Station, FakeController],
+) -> None:
+    st, fake = station
+    await fake.home()
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        await hello(ws, OPERATOR)
+        args = {"track_s_mm": 1234.5, "speed_mm_s": 80}
+        await ws.send_json({"type": "op", "id": 1, "op": "move_track", "args": args})
+        assert (await next_json(ws, "reply"))["ok"] is True
+        length = st.track.length_mm
+        await ws.send_json(
+            {"type": "op", "id": 2, "op": "move_track", "args": {"track_s_mm": length + 1}}
+        )
+        assert (await next_json(ws, "reply"))["code"] == "out_of_range"
+    moves = [args for call, args in fake.calls if call == "move_to"]
+    assert moves == [(1234.5, 80.0)]  # home_s_mm = 0 and no position yet: s itself
+
+
+async def test_mjpeg_serves_the_newest_frame_with_its_exposure(
+    station: tuple[Station, FakeController],
+) -> None:
+    st, _ = station
+    async with aiohttp.ClientSession() as http:
+        async with http.get(f"{st.url}mjpeg?token={VIEWER}") as reply:
+            assert reply.headers["Content-Type"].startswith("multipart/x-mixed-replace")
+            while st.hub.viewer_count == 0:
+                await asyncio.sleep(0.01)
+            st.hub.submit(ViewInput(3, 123_000_000, None, None))
+            reader = aiohttp.MultipartReader.from_response(reply)
+            part = await asyncio.wait_for(reader.next(), 5.0)
+            assert isinstance(part, aiohttp.BodyPartReader)
+            assert part.headers["X-Exposure-Ms"] == "123.000"
+            jpeg = await part.read()
+            assert cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR) is not None
+        bearer = {"Authorization": f"Bearer {VIEWER}"}
+        async with http.get(f"{st.url}frame.jpg", headers=bearer) as r:
+            assert r.status == 200
+            assert r.headers["Content-Type"] == "image/jpeg"
+
+
+async def test_video_file_frames_reach_the_page_paced(
+    station: tuple[Station, FakeController], tmp_path: Path
+) -> None:
+    st, _ = station
+    path = tmp_path / "scene.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 25.0, (320, 256))
+    for i in range(15):
+        writer.write(np.full((256, 320, 3), 40 + 10 * i, np.uint8))
+    writer.release()
+    source = VideoCaptureSource(str(path))
+
+    def register(frame: Frame) -> Registration:
+        return Registration(
+            frame.index, frame.exposure_ns, LookupStatus.STALE, None, 0.0, 0.0, 0.0,
+            None, 0, None, None, frame.image,
+        )  # fmt: skip
+
+    loop: FrameLoop[Registration] = FrameLoop(source, register, [st.on_registration])
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        await hello(ws, VIEWER)
+        run = asyncio.create_task(loop.run())
+        seen: list[tuple[int, float, float]] = []
+        while len(seen) < 5:
+            msg = await asyncio.wait_for(ws.receive(), 5.0)
+            if msg.type is not aiohttp.WSMsgType.BINARY:
+                continue
+            (length,) = struct.unpack(">I", msg.data[:4])
+            header = json.loads(msg.data[4 : 4 + length])
+            image = cv2.imdecode(np.frombuffer(msg.data[4 + length :], np.uint8), 0)
+            assert image is not None
+            seen.append((header["index"], header["exposure_ms"], float(image.mean())))
+            assert header["registered"] is False  # no pose: the frame, but no overlay
+            await ws.send_json({"type": "ack", "index": header["index"]})
+        await run
+    indices = [s[0] for s in seen]
+    assert indices == sorted(indices)
+    span_ms = seen[-1][1] - seen[0][1]
+    assert span_ms >= 0.8 * (indices[-1] - indices[0]) * 40.0  # 25 fps, not decoding speed
+    assert seen[-1][2] > seen[0][2]  # later frames of the file are brighter
+    assert loop.status()["source"]["state"] == "ended"
+
+
+async def test_the_station_serves_tls(tmp_path: Path) -> None:
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    made = await asyncio.create_subprocess_exec(
+        "openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+        "-subj", "/CN=127.0.0.1", "-keyout", str(key), "-out", str(cert),
+        stdout=asyncio.subprocess.DEVNULL, stderr=asyncio.subprocess.DEVNULL,
+    )  # fmt: skip
+    if await made.wait() != 0:
+        pytest.skip("openssl could not make a test certificate")
+    st = Station(station_config(tls_cert=str(cert), tls_key=str(key)), OpContext(None))
+    await st.start()
+    try:
+        assert st.url.startswith("https://")
+        async with aiohttp.ClientSession() as http, http.get(st.url, ssl=False) as reply:
+            assert reply.status == 200
+            assert "E-STOP" in await reply.text()
+    finally:
+        await st.close()
