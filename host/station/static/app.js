@@ -333,7 +333,10 @@ function onStatus(msg) {
     th.textContent = k; td.textContent = v; if (cls) td.className = cls; tr.append(th, td); table.append(tr);
   }
   $("figures").textContent = `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")}`;
-  $("motion-state").textContent = ctrl.state || "";
+  const latched = ctrl.state === "ESTOP" || ctrl.state === "FAULT";
+  const faults = (ctrl.fault_names || []).join(", ");
+  $("motion-state").textContent = latched ? `${ctrl.state} LATCHED (${faults}): Clear releases` : ctrl.state || "";
+  $("motion-state").classList.toggle("latched", latched);
   showTrolley(link.track_s_mm ?? (ctrl.position_mm ?? null));
   if (!drag && head[0] !== null && document.activeElement !== $("pan") && document.activeElement !== $("tilt")) {
     $("pan").value = deg(head[0]); $("tilt").value = deg(head[1]); showHead(deg(head[0]), deg(head[1]));
