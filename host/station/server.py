@@ -1,8 +1,8 @@
 """The operator station: an aiohttp app in the daemon's event loop (page, WebSocket, MJPEG).
 
 Everything the page needs is served from `static/` beside this module, so it works with no
-internet. Its actions go through `host.control.ops.run_op`, the same operations (validation,
-errors, roles) as the control socket. The daemon calls `on_registration` for each registered
+internet. Its actions run the control socket's operations (`host.control.ops`: the same
+validation, errors and roles). The daemon calls `on_registration` for each registered
 camera frame and `on_pose` for each pose; without camera frames the view renders the model
 from the registered pose over a plain background.
 """
@@ -27,7 +27,7 @@ from aiohttp import web
 from host.config import Config
 from host.config_ui import UiConfig
 from host.control.api import PoseSample
-from host.control.ops import OpContext, OpError, run_op
+from host.control.ops import OPS, OpContext, OpError
 from host.control.server import Role
 from host.frames.registrar import Registration
 from host.geometry.track import Track
@@ -136,11 +136,22 @@ class Station:
         """Operator, viewer or none; empty configured tokens never match."""
         return role_for_token(token, self.config)
 
-    async def run_op(self, op: str, args: Mapping[str, Any], operator: bool) -> Any:
-        """A control op, with the station's one addition: a move to a track position."""
-        if op == "move_track":
-            op, args = "move", self._track_move_args(args)
-        return await run_op(self.context, op, args, operator)
+    async def dispatch(self, role: Role, op: str, args: Mapping[str, Any]) -> dict[str, Any]:
+        """One op as the control socket runs it: {"ok", "result"} or {"ok": false, "error"}.
+
+        The station's one addition is `move_track`: a tapped track position becomes a `move`.
+        """
+        try:
+            if op == "move_track":
+                op, args = "move", self._track_move_args(args)
+            return {"ok": True, "result": await _run_op(self.context, role, op, args)}
+        except OpError as exc:
+            return {"ok": False, "error": {"code": exc.code, "message": str(exc)}}
+        except Exception as exc:  # a controller failure is the page's error, not ours
+            return {
+                "ok": False,
+                "error": {"code": "failed", "message": f"{type(exc).__name__}: {exc}"},
+            }
 
     def on_registration(self, reg: Registration) -> None:
         """A registered camera frame (frame loop output, event loop)."""
@@ -159,16 +170,13 @@ class Station:
 
     async def status(self) -> dict[str, Any]:
         """Everything the status panel shows, through the same ops as `orbitar status`."""
-        status = await run_op(self.context, "status", {}, False)
-        try:
-            link = await run_op(self.context, "link_stats", {}, False)
-        except OpError:
-            link = {}
+        status = await self.dispatch(Role.VIEWER, "status", {})
+        link = await self.dispatch(Role.VIEWER, "link_stats", {})
         return {
             "type": "status",
             "host_ms": time.monotonic_ns() / 1e6,
-            "status": status,
-            "link": link,
+            "status": status.get("result") or {},
+            "link": link.get("result") or {},
             "frames": dict(self.extra_status()),
             "station": self.station_stats(),
         }
@@ -332,6 +340,20 @@ async def _security_headers(request: web.Request, handler: Any) -> web.StreamRes
     if not response.prepared:
         response.headers.update(SECURITY_HEADERS)
     return response
+
+
+async def _run_op(ctx: OpContext, role: Role, op: str, args: Mapping[str, Any]) -> Any:
+    """The control socket's role rule and operations table, applied to a page's request.
+
+    A bridge: the hardening branch makes `host.control.ops.dispatch(ctx, role, op, args)` the one
+    entry for every caller; once it is on main, `Station.dispatch` calls it instead of this.
+    """
+    if op not in OPS:
+        raise OpError("unknown_op", f"unknown op {op!r}")
+    handler, needs_operator = OPS[op]
+    if needs_operator and role is not Role.OPERATOR:
+        raise OpError("forbidden", f"{op!r} needs the operator role")
+    return await handler(ctx, args)
 
 
 def role_for_token(token: Any, ui: UiConfig) -> Role:

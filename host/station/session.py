@@ -1,7 +1,7 @@
 """One page on one WebSocket: its role, its requests, its frames, and the jog dead-man.
 
-Messages from the page are JSON: `hello` (the token, first), `op` (a control operation, run by
-`host.control.ops.run_op` exactly as for the control socket), `hold` (the jog dead-man's
+Messages from the page are JSON: `hello` (the token, first), `op` (a control operation, run
+as for the control socket, through `Station.dispatch`), `hold` (the jog dead-man's
 heartbeat), `ack` (the page decoded a frame: send the next), `ping` (clock offset). To the page:
 JSON replies and status, and binary frames: a 4-byte big-endian header length, a JSON header
 (index, exposure time, feature points in view) and the JPEG.
@@ -25,7 +25,6 @@ from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSMsgType, web
 
-from host.control.ops import OpError
 from host.control.server import Role
 from host.station.hub import ViewerSlot
 from host.station.render import EncodedView
@@ -170,15 +169,13 @@ class PageSession:
 
     async def _op(self, request_id: Any, op: str, args: dict[str, Any]) -> None:
         """Run one op and queue its reply."""
-        reply: dict[str, Any] = {"type": "reply", "id": request_id, "op": op}
-        try:
-            result = await self.station.run_op(op, args, self.role is Role.OPERATOR)
-        except OpError as exc:
-            reply.update(ok=False, code=exc.code, message=str(exc))
-        except Exception as exc:  # a controller failure is the page's error, not ours
-            reply.update(ok=False, code="failed", message=f"{type(exc).__name__}: {exc}")
+        body = await self.station.dispatch(self.role, op, args)
+        reply: dict[str, Any] = {"type": "reply", "id": request_id, "op": op, "ok": body["ok"]}
+        if body["ok"]:
+            reply["result"] = body.get("result")
         else:
-            reply.update(ok=True, result=result)
+            error = body.get("error") or {}
+            reply.update(code=error.get("code"), message=error.get("message"))
         if not reply["ok"] and op == "jog":
             self.jogging = False
         self._reply(reply)
@@ -214,10 +211,9 @@ class PageSession:
         self.deadman_stops += 1
         self.station.stats["deadman_stops"] += 1
         log.warning("station dead-man: stopping the jog", extra={"kv": {"why": why}})
-        try:
-            await self.station.run_op("stop", {}, True)
-        except Exception as exc:  # the firmware's own watchdog is the next line of defence
-            log.error("dead-man stop failed", extra={"kv": {"error": exc}})
+        body = await self.station.dispatch(Role.OPERATOR, "stop", {})
+        if not body["ok"]:  # the firmware's own watchdog is the next line of defence
+            log.error("dead-man stop failed", extra={"kv": {"error": body.get("error")}})
         self._reply({"type": "deadman", "why": why})
 
     async def _write_loop(self) -> None:

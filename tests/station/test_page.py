@@ -282,7 +282,7 @@ async def test_tapping_the_plan_moves_the_trolley_there(
     async def arrived() -> bool:
         stats = await ctl.request("link_stats")
         state = (await controller(ctl))["state"]
-        return state == "READY" and abs(stats["track_s_mm"] - target_s) < 5.0
+        return bool(state == "READY" and abs(stats["track_s_mm"] - target_s) < 5.0)
 
     await until(arrived, 30.0, f"the trolley at s = {target_s} mm")
     await page.screenshot(path=str(ARTIFACTS / "moved_by_plan.png"), full_page=True)
@@ -314,8 +314,9 @@ async def test_estop_latches_and_clear_releases(
     assert (await controller(ctl))["state"] == "ESTOP"  # latched: a jog does not release it
     assert abs((await controller(ctl))["position_mm"] - before) < 0.5
     await page.locator("#clear").click()
+
     async def released() -> bool:
-        return (await controller(ctl))["state"] in ("IDLE", "READY")  # READY when homed
+        return str((await controller(ctl))["state"]) in ("IDLE", "READY")  # READY when homed
 
     await until(released, 3.0, "released after clear")
     await page.close()
