@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import io
 import json
 import math
@@ -237,6 +238,9 @@ async def _watch(
     view: dict[str, Any] = {}
     async with await ControlClient.connect_unix(path) as client:
         view["status"] = await client.request("status")
+        with contextlib.suppress(ControlRequestError):  # the first link figures, before events
+            link = await client.request("link_stats")
+            view["link"] = {"up": view["status"].get("link_up", False), **link}
         await client.request("subscribe", topics=["pose", "state", "link"])
         updates = 0
         last_event_s = last_draw_s = time.monotonic()
