@@ -121,6 +121,36 @@ async def mjpeg_client(url: str, seconds: float, out: list[float]) -> int:
     return frames
 
 
+async def ws_clients(url: str, count: int, seconds: float) -> None:
+    """Viewers that acknowledge every frame at once (no decoding): the daemon's side alone."""
+
+    async def one(http: aiohttp.ClientSession) -> None:
+        async with http.ws_connect(url) as ws:
+            await ws.send_json({"type": "hello", "token": TOKEN})
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline:
+                msg = await ws.receive(timeout=5.0)
+                if msg.type is aiohttp.WSMsgType.BINARY:
+                    await ws.send_json({"type": "ack"})
+
+    async with aiohttp.ClientSession() as http:
+        await asyncio.gather(*(one(http) for _ in range(count)))
+
+
+async def daemon_side_fps(loop: FrameLoop[Any], ws_url: str, count: int, seconds: float) -> float:
+    """Frame loop fps while `count` light viewers in another process take every frame."""
+    import sys
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--clients", ws_url, "--viewers", str(count),
+        "--seconds", str(seconds + 2.0),
+    )  # fmt: skip
+    await asyncio.sleep(1.0)
+    fps = await asyncio.to_thread(loop_fps, loop, seconds)
+    await proc.wait()
+    return fps
+
+
 def pct(values: list[float], q: float) -> float:
     """A percentile (nan when empty)."""
     return float(np.percentile(values, q)) if values else float("nan")
@@ -140,6 +170,8 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     try:
         await asyncio.sleep(1.0)
         fps0 = await asyncio.to_thread(loop_fps, loop, seconds)
+        ws_url = f"http://127.0.0.1:{station.port}/ws"
+        fps_light = await daemon_side_fps(loop, ws_url, viewers, seconds)
         async with async_playwright() as pw:
             browser = await pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
             pages, first_frame_s = [], []
@@ -188,7 +220,9 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     print(f"process_cpu_ms_per_frame: {cpu_s * 1e3 / encoded:.2f}  # includes the camera, loop")
     print(f"frame_loop_fps_0_viewers: {fps0:.2f}")
     print(f"frame_loop_fps_{viewers}_viewers: {fps_n:.2f}")
-    print(f"frame_loop_fps_cost_pct: {100.0 * (fps0 - fps_n) / fps0:.2f}")
+    print(f"frame_loop_fps_cost_pct: {100.0 * (fps0 - fps_n) / fps0:.2f}  # browsers share the CPU")
+    print(f"frame_loop_fps_{viewers}_light_viewers: {fps_light:.2f}  # acking clients, no decode")
+    print(f"frame_loop_fps_cost_pct_light: {100.0 * (fps0 - fps_light) / fps0:.2f}")
     print(f"frames_dropped_by_loop: {loop.stats.dropped}")
     print(f"encoder_dropped: {station.hub.stats.dropped}")
 
@@ -201,7 +235,11 @@ def main() -> None:
     parser.add_argument("--viewers", type=int, default=4)
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=1024)
+    parser.add_argument("--clients", metavar="WS_URL", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.clients:
+        asyncio.run(ws_clients(args.clients, args.viewers, args.seconds))
+        return
     asyncio.run(run(args.seconds, args.fps, args.viewers, args.width, args.height))
 
 

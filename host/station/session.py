@@ -119,7 +119,10 @@ class PageSession:
                 await self.ws.send_json({"type": "error", "code": "unauthorized"})
                 await self.ws.close(code=CLOSE_UNAUTHORIZED, message=b"unknown token")
             return False
-        await self.ws.send_json({"type": "hello", "role": self.role.value, **self.station.info})
+        try:
+            await self.ws.send_json({"type": "hello", "role": self.role.value, **self.station.info})
+        except ConnectionError:  # the page left while we answered
+            return False
         return True
 
     async def _read_loop(self) -> None:

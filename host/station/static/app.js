@@ -311,7 +311,7 @@ function onStatus(msg) {
     ["drops (bad frames)", `${link.drops ?? "—"}`],
     ["clock sync σ", fmt(link.clock_sigma_us, 1, " µs")],
     ["state", ctrl.state || "—", ctrl.state === "FAULT" || ctrl.state === "ESTOP" ? "bad" : ""],
-    ["faults", (ctrl.fault_names || []).join(", ") || "none", (ctrl.fault_names || []).length ? "bad" : "ok"],
+    ["faults", faultText(ctrl), ctrl.faults ? "bad" : "ok"],
     ["position", fmt(ctrl.position_mm, 1, " mm")],
     ["homed", link.homed ? "yes" : "no — press Home to reference the track", link.homed ? "ok" : "bad"],
     ["track s (corrected)", fmt(link.track_s_mm, 1, " mm")],
@@ -341,6 +341,12 @@ function onStatus(msg) {
   if (!drag && head[0] !== null && document.activeElement !== $("pan") && document.activeElement !== $("tilt")) {
     $("pan").value = deg(head[0]); $("tilt").value = deg(head[1]); showHead(deg(head[0]), deg(head[1]));
   }
+}
+
+function faultText(ctrl) {
+  const names = ctrl.fault_names || [];
+  if (names.length) return names.join(", ");
+  return ctrl.faults ? `0x${Number(ctrl.faults).toString(16).padStart(4, "0")} (unnamed bits)` : "none";
 }
 
 function showTrolley(s) {
