@@ -86,6 +86,7 @@ class Station:
         self.hub = FrameHub(renderer)
         self.info = station_info(config, self.track, self.parts)
         self.stats = {"pages": 0, "refused": 0, "deadman_stops": 0, "mjpeg_clients": 0}
+        self.stats["cut_off"] = 0
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self.port: int | None = None
         self.sessions: set[PageSession] = set()

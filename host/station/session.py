@@ -39,6 +39,8 @@ SILENCE_TIMEOUT_S = 10.0  # pages ping every 2 s: a silent one is gone (no FIN o
 ACK_TIMEOUT_S = 1.0  # a page that never acknowledges still gets a frame a second
 MAX_MESSAGE_BYTES = 64 * 1024
 CLOSE_UNAUTHORIZED = 4401  # application close code: bad or missing token
+MAX_INFLIGHT = 16  # requests running for one page (STOP and E-STOP are never refused)
+MAX_UNSENT_REPLIES = 256  # a page that sends but never reads is cut off, not buffered for
 MOTION_OPS = frozenset({"jog", "move", "home", "head"})
 STOPPING_OPS = frozenset({"stop", "estop"})
 
@@ -79,6 +81,7 @@ class PageSession:
         self._sent_at_s = 0.0
         self._wake = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
+        self._closer: asyncio.Task[None] | None = None
 
     async def run(self) -> None:
         """Authenticate, then serve until the page goes; a jog in progress is stopped."""
@@ -96,7 +99,8 @@ class PageSession:
             self.station.hub.detach(self._slot)
             if self.jogging:
                 await self._deadman_stop("page disconnected")
-            await asyncio.gather(writer, deadman, *self._tasks, return_exceptions=True)
+            closer = [self._closer] if self._closer is not None else []
+            await asyncio.gather(writer, deadman, *self._tasks, *closer, return_exceptions=True)
 
     def push_status(self, status: dict[str, Any]) -> None:
         """The newest status replaces one not yet sent."""
@@ -159,6 +163,10 @@ class PageSession:
         if not isinstance(op, str) or not isinstance(args, dict):
             self._reply({"type": "reply", "id": data.get("id"), "ok": False, "code": "bad_request"})
             return
+        if len(self._tasks) >= MAX_INFLIGHT and op not in STOPPING_OPS:
+            self._reply({"type": "reply", "id": data.get("id"), "op": op, "ok": False,
+                         "code": "busy", "message": "too many requests in flight"})  # fmt: skip
+            return
         if op == "jog" and self.role is Role.OPERATOR:
             velocity = args.get("velocity_mm_s")
             # The dead-man starts with the request, not with its acknowledgement.
@@ -184,9 +192,20 @@ class PageSession:
         self._reply(reply)
 
     def _reply(self, message: dict[str, Any]) -> None:
-        """Queue a message that is never dropped."""
+        """Queue a message that is never dropped; a page that does not read them is cut off."""
+        if len(self._replies) >= MAX_UNSENT_REPLIES:
+            self.station.stats["cut_off"] += 1
+            self._replies.clear()
+            if self._closer is None:
+                self._closer = asyncio.create_task(self._cut_off())
+            return
         self._replies.append(message)
         self._wake.set()
+
+    async def _cut_off(self) -> None:
+        """Close a page that does not read what it asked for."""
+        log.warning("station page cut off: it does not read its replies")
+        await self.ws.close(code=1008, message=b"replies not read")
 
     def _on_ack(self, data: dict[str, Any]) -> None:
         """The page has drawn the frame: record its latency, allow the next."""

@@ -368,3 +368,28 @@ async def test_the_station_serves_tls(tmp_path: Path) -> None:
             assert "E-STOP" in await reply.text()
     finally:
         await st.close()
+
+
+async def test_a_flooding_page_is_refused_but_its_stop_is_not(
+    station: tuple[Station, FakeController],
+) -> None:
+    st, fake = station
+
+    async def slow_param(param: Any) -> int:  # a slow link: requests stay in flight
+        await asyncio.sleep(0.3)
+        return 0
+
+    fake.get_param = slow_param  # type: ignore[method-assign]
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        await hello(ws, OPERATOR)
+        ops = [{"type": "op", "id": i, "op": "param_get", "args": {"param": "WATCHDOG_MS"}}
+               for i in range(40)]  # fmt: skip
+        for message in ops:
+            await ws.send_json(message)
+        await ws.send_json({"type": "op", "id": "s", "op": "stop", "args": {}})
+        replies = []
+        while len(replies) < 41:
+            replies.append(await next_json(ws, "reply"))
+        assert any(r.get("code") == "busy" for r in replies)
+        assert next(r for r in replies if r["id"] == "s")["ok"] is True
+    assert calls(fake, "stop") == 1
