@@ -387,7 +387,7 @@ async def test_a_flooding_page_is_refused_but_its_stop_is_not(
         for message in ops:
             await ws.send_json(message)
         await ws.send_json({"type": "op", "id": "s", "op": "stop", "args": {}})
-        replies = []
+        replies: list[dict[str, Any]] = []
         while len(replies) < 41:
             replies.append(await next_json(ws, "reply"))
         assert any(r.get("code") == "busy" for r in replies)
