@@ -393,3 +393,35 @@ async def test_a_flooding_page_is_refused_but_its_stop_is_not(
         assert any(r.get("code") == "busy" for r in replies)
         assert next(r for r in replies if r["id"] == "s")["ok"] is True
     assert calls(fake, "stop") == 1
+
+
+async def test_a_page_that_never_acknowledges_holds_one_frame_and_slows_nobody(
+    station: tuple[Station, FakeController],
+) -> None:
+    st, _ = station
+    async with aiohttp.ClientSession() as http:
+        stalled = await http.ws_connect(f"{st.url}ws")
+        await hello(stalled, VIEWER)  # and from now on it reads nothing, acknowledges nothing
+        live = await http.ws_connect(f"{st.url}ws")
+        await hello(live, VIEWER)
+        received = 0
+        for i in range(60):
+            st.hub.submit(ViewInput(i, time.monotonic_ns(), None, None))
+            await asyncio.sleep(0.01)
+            while True:  # the live page takes and acknowledges what it gets
+                try:
+                    msg = await asyncio.wait_for(live.receive(), 0.001)
+                except TimeoutError:
+                    break
+                if msg.type is aiohttp.WSMsgType.BINARY:
+                    received += 1
+                    await live.send_json({"type": "ack"})
+        sessions = {s.frames_sent: s for s in st.sessions}
+        slow = sessions[min(sessions)]
+        assert slow.frames_sent <= 2  # one, then one a second without acknowledgements
+        assert slow._slot is not None
+        assert slow._slot.dropped >= 50  # the rest replaced in its one-frame slot
+        assert received >= 20  # the other page kept getting frames meanwhile
+        assert st.hub.stats.encoded >= 20
+        await stalled.close()
+        await live.close()
