@@ -223,6 +223,8 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     print(f"frame_loop_fps_cost_pct: {100.0 * (fps0 - fps_n) / fps0:.2f}  # browsers share the CPU")
     print(f"frame_loop_fps_{viewers}_light_viewers: {fps_light:.2f}  # acking clients, no decode")
     print(f"frame_loop_fps_cost_pct_light: {100.0 * (fps0 - fps_light) / fps0:.2f}")
+    ready = station.station_stats()["jpeg_ready_ms_p50"]
+    print(f"jpeg_ready_ms_p50: {ready}  # exposure to encoded JPEG, in the daemon")
     print(f"registration_latency_ms_p50: {loop.stats.latency_ms(0.5):.1f}  # exposure to pose")
     print(f"frames_dropped_by_loop: {loop.stats.dropped}")
     print(f"encoder_dropped: {station.hub.stats.dropped}")

@@ -63,6 +63,7 @@ class HubStats:
     failed: int = 0
     cpu_ms: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))
     encoded_ns: deque[int] = field(default_factory=lambda: deque(maxlen=WINDOW))
+    ready_ms: deque[float] = field(default_factory=lambda: deque(maxlen=WINDOW))  # exposure→JPEG
 
     def fps(self) -> float:
         """Frames encoded per second, recently."""
@@ -151,5 +152,6 @@ class FrameHub:
         self.stats.encoded += 1
         self.stats.cpu_ms.append(frame.cpu_ms)
         self.stats.encoded_ns.append(time.monotonic_ns())
+        self.stats.ready_ms.append((frame.encoded_ns - frame.exposure_ns) / 1e6)
         for slot in self._viewers:
             slot.offer(frame)

@@ -193,6 +193,7 @@ class Station:
             "encode_fps": round(hub.fps(), 2),
             "encode_dropped": hub.dropped,
             "encode_cpu_ms": round(hub.cpu_ms_mean(), 2),
+            "jpeg_ready_ms_p50": _quantile(sorted(hub.ready_ms), 0.5),
             "latency_ms_p50": _quantile(ordered, 0.5),
             "latency_ms_p95": _quantile(ordered, 0.95),
         }
