@@ -55,6 +55,7 @@ SECURITY_HEADERS = {
     "Cache-Control": "no-store",
 }
 StatusProvider = Callable[[], Mapping[str, Any]]
+SAFETY_OPS = frozenset({"stop", "estop"})  # any authenticated role may stop the trolley
 
 
 class Station:
@@ -349,11 +350,14 @@ async def _run_op(ctx: OpContext, role: Role, op: str, args: Mapping[str, Any]) 
 
     A bridge: the hardening branch makes `host.control.ops.dispatch(ctx, role, op, args)` the one
     entry for every caller; once it is on main, `Station.dispatch` calls it instead of this.
+    STOP and E-STOP run for any authenticated role (the project's rule, OWNERS.md).
     """
     if op not in OPS:
         raise OpError("unknown_op", f"unknown op {op!r}")
     handler, needs_operator = OPS[op]
-    if needs_operator and role is not Role.OPERATOR:
+    if role is Role.NONE:
+        raise OpError("unauthorized", "no token")
+    if needs_operator and role is not Role.OPERATOR and op not in SAFETY_OPS:
         raise OpError("forbidden", f"{op!r} needs the operator role")
     return await handler(ctx, args)
 

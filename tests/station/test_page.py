@@ -337,7 +337,13 @@ async def test_a_viewer_cannot_move_and_a_bad_token_gets_nothing(
     await asyncio.sleep(0.3)
     assert (await controller(ctl))["state"] != "MOVING"
     assert abs((await controller(ctl))["position_mm"] - before) < 0.5
+    await page.locator("#estop").click()  # but a viewer may always stop it
+    await until(lambda: _state_is(ctl, "ESTOP"), 3.0, "ESTOP from the viewer")
     await page.screenshot(path=str(ARTIFACTS / "viewer.png"))
+    await page.locator("#clear").click(force=True)  # greyed out and inert for a viewer
+    await page.wait_for_timeout(300)
+    assert (await controller(ctl))["state"] == "ESTOP"
+    await ctl.request("clear")
     await page.close()
     bad = await open_page(browser, station_rig.url("not-the-token"))
     await bad.wait_for_selector("#login:not([hidden])")
