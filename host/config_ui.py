@@ -26,6 +26,7 @@ class UiConfig:
     tls_cert: str = spec("", doc="TLS certificate file (PEM); empty: plain HTTP")
     tls_key: str = spec("", doc="TLS private key file (PEM), with tls_cert")
     jpeg_quality: int = spec(80, lo=10, hi=100, doc="JPEG quality of the live view")
+    ghost: bool = spec(True, doc="also draw the encoder-only registration, before drift correction")
     status_hz: float = spec(5.0, lo=0.2, hi=30.0, doc="rate of status pushes to each page")
     deadman_ms: float = spec(
         250.0, lo=50.0, hi=2000.0, doc="a jog stops when the page's hold messages pause this long"

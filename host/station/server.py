@@ -84,6 +84,7 @@ class Station:
             self.parts,
             config.ui.jpeg_quality,
         )
+        renderer.show_ghost = config.ui.ghost
         self.hub = FrameHub(renderer)
         self.info = station_info(config, self.track, self.parts)
         self.stats = {"pages": 0, "refused": 0, "deadman_stops": 0, "mjpeg_clients": 0}
