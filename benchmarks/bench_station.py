@@ -34,7 +34,7 @@ from host.station.server import Station
 CHROMIUM = "/usr/bin/chromium"
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--no-first-run"]  # fmt: skip
-TOKEN = "bench-token"
+TOKEN = "bench-token-0123456"
 
 
 class SyntheticCamera:

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 from host.config_fields import spec
 
+MIN_TOKEN_CHARS = 16  # host.config.MIN_TOKEN_CHARS: guessing a token through hello is hopeless
+
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 
 
@@ -43,6 +45,9 @@ def ui_problems(ui: UiConfig) -> list[str]:
         problems.append("ui.operator_token: a token (operator or viewer) is required when enabled")
     if bool(ui.tls_cert) != bool(ui.tls_key):
         problems.append("ui.tls_key: tls_cert and tls_key are given together or not at all")
+    for key in ("operator_token", "viewer_token"):
+        if 0 < (n := len(getattr(ui, key))) < MIN_TOKEN_CHARS:
+            problems.append(f"ui.{key}: {n} characters, need {MIN_TOKEN_CHARS} or more")
     if ui.operator_token and ui.operator_token == ui.viewer_token:
         problems.append("ui.viewer_token: must differ from ui.operator_token")
     return problems

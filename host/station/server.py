@@ -27,8 +27,7 @@ from aiohttp import web
 from host.config import Config
 from host.config_ui import UiConfig
 from host.control.api import PoseSample
-from host.control.ops import OPS, OpContext, OpError
-from host.control.server import Role
+from host.control.ops import OpContext, OpError, Role, dispatch
 from host.frames.registrar import Registration
 from host.geometry.track import Track
 from host.geometry.transforms import FloatArray, invert_T
@@ -55,7 +54,6 @@ SECURITY_HEADERS = {
     "Cache-Control": "no-store",
 }
 StatusProvider = Callable[[], Mapping[str, Any]]
-SAFETY_OPS = frozenset({"stop", "estop"})  # any authenticated role may stop the trolley
 
 
 class Station:
@@ -144,17 +142,14 @@ class Station:
 
         The station's one addition is `move_track`: a tapped track position becomes a `move`.
         """
-        try:
-            if op == "move_track":
+        if op == "move_track":
+            if not role.allows(Role.OPERATOR):
+                return OpError("forbidden", "'move_track' needs the operator role").reply()
+            try:
                 op, args = "move", self._track_move_args(args)
-            return {"ok": True, "result": await _run_op(self.context, role, op, args)}
-        except OpError as exc:
-            return {"ok": False, "error": {"code": exc.code, "message": str(exc)}}
-        except Exception as exc:  # a controller failure is the page's error, not ours
-            return {
-                "ok": False,
-                "error": {"code": "failed", "message": f"{type(exc).__name__}: {exc}"},
-            }
+            except OpError as exc:
+                return exc.reply()
+        return await dispatch(self.context, role, op, args)
 
     def on_registration(self, reg: Registration) -> None:
         """A registered camera frame (frame loop output, event loop)."""
@@ -344,23 +339,6 @@ async def _security_headers(request: web.Request, handler: Any) -> web.StreamRes
     if not response.prepared:
         response.headers.update(SECURITY_HEADERS)
     return response
-
-
-async def _run_op(ctx: OpContext, role: Role, op: str, args: Mapping[str, Any]) -> Any:
-    """The control socket's role rule and operations table, applied to a page's request.
-
-    A bridge: the hardening branch makes `host.control.ops.dispatch(ctx, role, op, args)` the one
-    entry for every caller; once it is on main, `Station.dispatch` calls it instead of this.
-    STOP and E-STOP run for any authenticated role (the project's rule, OWNERS.md).
-    """
-    if op not in OPS:
-        raise OpError("unknown_op", f"unknown op {op!r}")
-    handler, needs_operator = OPS[op]
-    if role is Role.NONE:
-        raise OpError("unauthorized", "no token")
-    if needs_operator and role is not Role.OPERATOR and op not in SAFETY_OPS:
-        raise OpError("forbidden", f"{op!r} needs the operator role")
-    return await handler(ctx, args)
 
 
 def role_for_token(token: Any, ui: UiConfig) -> Role:

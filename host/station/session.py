@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from aiohttp import WSMsgType, web
 
-from host.control.server import Role
+from host.control.ops import Role
 from host.station.hub import ViewerSlot
 from host.station.render import EncodedView
 

@@ -34,8 +34,8 @@ CHROMIUM_ARGS = [
     "--no-first-run",
 ]
 ARTIFACTS = Path(__file__).with_name("artifacts")
-OPERATOR_TOKEN = "op-secret-1"
-VIEWER_TOKEN = "view-secret-1"
+OPERATOR_TOKEN = "operator-secret-0001"
+VIEWER_TOKEN = "viewer-secret-00001"
 MARKS = "250,400"
 CONFIG = """
 [link]

@@ -30,8 +30,8 @@ from host.station.parts import BUILTIN_SIDECAR, PartsError, load_parts, parse_pa
 from host.station.render import ViewInput, ViewRenderer
 from host.station.server import Station
 
-OPERATOR = "op-token"
-VIEWER = "view-token"
+OPERATOR = "operator-token-0123"
+VIEWER = "viewer-token-01234"
 DEADMAN_MS = 250.0
 
 
@@ -235,7 +235,8 @@ def test_a_missing_sidecar_is_no_error(tmp_path: Path) -> None:
     [
         ({"enabled": True}, "ui.operator_token"),
         ({"tls_cert": "a.pem"}, "ui.tls_key"),
-        ({"operator_token": "x", "viewer_token": "x"}, "ui.viewer_token"),
+        ({"operator_token": "x" * 16, "viewer_token": "x" * 16}, "ui.viewer_token"),
+        ({"operator_token": "short"}, "ui.operator_token: 5 characters"),
         ({"port": 70000}, "ui.port"),
     ],
 )
