@@ -41,8 +41,9 @@ MAX_MESSAGE_BYTES = 64 * 1024
 CLOSE_UNAUTHORIZED = 4401  # application close code: bad or missing token
 MAX_INFLIGHT = 16  # requests running for one page (STOP and E-STOP are never refused)
 MAX_UNSENT_REPLIES = 256  # a page that sends but never reads is cut off, not buffered for
-MOTION_OPS = frozenset({"jog", "move", "home", "head"})
 STOPPING_OPS = frozenset({"stop", "estop"})
+# Requests that replace a jog once they succeed (the head turns independently of the trolley).
+REPLACING_OPS = frozenset({"jog", "move", "move_track", "home", *STOPPING_OPS})
 
 
 def frame_message(frame: EncodedView, sent_ns: int) -> bytes:
@@ -69,7 +70,8 @@ class PageSession:
         self.station = station
         self.ws = ws
         self.role = Role.NONE
-        self.jogging = False
+        self.jogging = False  # the dead-man is armed
+        self._motion_seq = 0  # motion requests so far: only the newest may disarm
         self.last_hold_s = 0.0
         self.last_heard_s = time.monotonic()
         self.deadman_stops = 0
@@ -167,19 +169,20 @@ class PageSession:
             self._reply({"type": "reply", "id": data.get("id"), "op": op, "ok": False,
                          "code": "busy", "message": "too many requests in flight"})  # fmt: skip
             return
-        if op == "jog" and self.role is Role.OPERATOR:
+        motion_seq = self._motion_seq
+        if op in REPLACING_OPS:
+            self._motion_seq = motion_seq = motion_seq + 1
             velocity = args.get("velocity_mm_s")
-            # The dead-man starts with the request, not with its acknowledgement.
-            self.jogging = isinstance(velocity, int | float) and velocity != 0
-            self.last_hold_s = time.monotonic()
-        elif op in STOPPING_OPS or op in MOTION_OPS:
-            self.jogging = False
-        task = asyncio.create_task(self._op(data.get("id"), op, args))
+            if op == "jog" and self.role is Role.OPERATOR and velocity != 0:
+                # Armed with the request, not its acknowledgement; only a success disarms.
+                self.jogging = True
+                self.last_hold_s = time.monotonic()
+        task = asyncio.create_task(self._op(data.get("id"), op, args, motion_seq))
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    async def _op(self, request_id: Any, op: str, args: dict[str, Any]) -> None:
-        """Run one op and queue its reply."""
+    async def _op(self, request_id: Any, op: str, args: dict[str, Any], motion_seq: int) -> None:
+        """Run one op and queue its reply; a jog-ending success disarms the dead-man."""
         body = await self.station.dispatch(self.role, op, args)
         reply: dict[str, Any] = {"type": "reply", "id": request_id, "op": op, "ok": body["ok"]}
         if body["ok"]:
@@ -187,8 +190,9 @@ class PageSession:
         else:
             error = body.get("error") or {}
             reply.update(code=error.get("code"), message=error.get("message"))
-        if not reply["ok"] and op == "jog":
-            self.jogging = False
+        ends_jog = op != "jog" or args.get("velocity_mm_s") == 0
+        if body["ok"] and op in REPLACING_OPS and ends_jog and motion_seq == self._motion_seq:
+            self.jogging = False  # a failure keeps it armed: a needless STOP is harmless
         self._reply(reply)
 
     def _reply(self, message: dict[str, Any]) -> None:

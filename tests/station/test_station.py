@@ -426,3 +426,30 @@ async def test_a_page_that_never_acknowledges_holds_one_frame_and_slows_nobody(
         assert st.hub.stats.encoded >= 20
         await stalled.close()
         await live.close()
+
+
+async def test_only_a_request_that_ends_the_jog_disarms_the_deadman(
+    station: tuple[Station, FakeController],
+) -> None:
+    st, fake = station
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        await hello(ws, OPERATOR)
+        requests = [
+            ("jog", {"velocity_mm_s": 40}),
+            ("head", {"pan_rad": 0.1, "tilt_rad": 0.0}),  # turning the head leaves the jog on
+            ("move", {"position_mm": 1e9}),  # refused (out of range): the jog goes on
+        ]
+        for i, (op, args) in enumerate(requests):
+            await ws.send_json({"type": "op", "id": i, "op": op, "args": args})
+            await ws.send_json({"type": "hold"})
+        replies = {r["op"]: r for r in [await next_json(ws, "reply") for _ in requests]}
+        assert replies["head"]["ok"] is True
+        assert replies["move"]["ok"] is False
+        assert (await next_json(ws, "deadman"))["why"] == "hold messages stopped"
+        assert calls(fake, "stop") == 1
+        await ws.send_json({"type": "op", "id": 9, "op": "jog", "args": {"velocity_mm_s": 40}})
+        await ws.send_json({"type": "op", "id": 10, "op": "jog", "args": {"velocity_mm_s": 0}})
+        await next_json(ws, "reply")
+        await next_json(ws, "reply")
+        await asyncio.sleep(DEADMAN_MS / 1000 * 2)
+        assert calls(fake, "stop") == 1  # released properly: nothing more to stop
