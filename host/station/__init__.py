@@ -9,12 +9,20 @@ if TYPE_CHECKING:
     from host.station.server import Station
 
 
+def pose_feed(controller: object) -> Any:
+    """The controller's PoseFeed sink (raw and corrected track position), or None."""
+    from host.registration.track_feed import PoseFeed
+
+    sinks = getattr(controller, "sinks", ())
+    return next((s for s in sinks if isinstance(s, PoseFeed)), None)
+
+
 def attach_station(daemon: Daemon) -> Station:
     """A station on the daemon's ops, fed by its frame loop (the daemon starts and closes it)."""
     from host.frames.loop import FrameLoop, frame_loop_status
     from host.station.server import Station
 
-    feed = getattr(daemon.controller, "track_feed", None)
+    feed = pose_feed(daemon.controller)
 
     def ghost_offset_mm() -> float | None:
         raw, corrected = getattr(feed, "raw_s_mm", None), getattr(feed, "s_mm", None)

@@ -106,7 +106,9 @@ async def _survey_home(daemon: Daemon, world: Any) -> None:
     The zero is the encoder index after the home switch, some way past `home_s_mm`; on a rig
     the installation survey measures it once, here the simulated survey does (as `orbitar demo`).
     """
-    feed = getattr(daemon.controller, "track_feed", None)
+    from host.station import pose_feed
+
+    feed = pose_feed(daemon.controller)
     if feed is None:
         return
     surveyed = False

@@ -17,7 +17,6 @@ import pytest
 
 from host.config import Config, config_from_dict
 from host.config_fields import ConfigError
-from host.control.fake import FakeController
 from host.control.ops import OpContext
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registration
@@ -29,6 +28,7 @@ from host.station.hub import FrameHub
 from host.station.parts import BUILTIN_SIDECAR, PartsError, load_parts, parse_parts
 from host.station.render import ViewInput, ViewRenderer
 from host.station.server import Station
+from tests.fakes import MemoryController
 
 OPERATOR = "operator-token-0123"
 VIEWER = "viewer-token-01234"
@@ -49,8 +49,8 @@ def station_config(**ui: Any) -> Config:
 
 
 @pytest.fixture
-async def station() -> AsyncIterator[tuple[Station, FakeController]]:
-    fake = FakeController()
+async def station() -> AsyncIterator[tuple[Station, MemoryController]]:
+    fake = MemoryController()
     await fake.connect()
     st = Station(station_config(deadman_ms=DEADMAN_MS), OpContext(fake))
     await st.start()
@@ -78,13 +78,13 @@ async def next_json(ws: aiohttp.ClientWebSocketResponse, kind: str) -> dict[str,
             return {"type": "closed", "code": ws.close_code}
 
 
-def calls(fake: FakeController, name: str) -> int:
+def calls(fake: MemoryController, name: str) -> int:
     """How often the controller was asked to do `name`."""
     return sum(1 for call, _ in fake.calls if call == name)
 
 
 async def test_a_jog_stops_when_hold_messages_pause(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, fake = station
     async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
@@ -103,7 +103,7 @@ async def test_a_jog_stops_when_hold_messages_pause(
         assert DEADMAN_MS - 100 < took_ms < DEADMAN_MS + 150
 
 
-async def test_a_dropped_socket_stops_its_jog(station: tuple[Station, FakeController]) -> None:
+async def test_a_dropped_socket_stops_its_jog(station: tuple[Station, MemoryController]) -> None:
     st, fake = station
     async with aiohttp.ClientSession() as http:
         ws = await http.ws_connect(f"{st.url}ws")
@@ -119,7 +119,7 @@ async def test_a_dropped_socket_stops_its_jog(station: tuple[Station, FakeContro
     assert st.stats["deadman_stops"] == 1
 
 
-async def test_roles_and_tokens(station: tuple[Station, FakeController]) -> None:
+async def test_roles_and_tokens(station: tuple[Station, MemoryController]) -> None:
     st, fake = station
     async with aiohttp.ClientSession() as http:
         async with http.ws_connect(f"{st.url}ws") as ws:
@@ -148,7 +148,7 @@ async def test_roles_and_tokens(station: tuple[Station, FakeController]) -> None
 
 
 async def test_frames_carry_exposure_time_and_points(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, _ = station
     async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
@@ -269,7 +269,7 @@ def test_a_video_file_plays_at_its_frame_rate_and_its_end_is_reported(tmp_path: 
 
 
 async def test_a_tap_on_the_plan_moves_through_the_move_op(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, fake = station
     await fake.home()
@@ -288,7 +288,7 @@ async def test_a_tap_on_the_plan_moves_through_the_move_op(
 
 
 async def test_mjpeg_serves_the_newest_frame_with_its_exposure(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, _ = station
     async with aiohttp.ClientSession() as http:
@@ -310,7 +310,7 @@ async def test_mjpeg_serves_the_newest_frame_with_its_exposure(
 
 
 async def test_video_file_frames_reach_the_page_paced(
-    station: tuple[Station, FakeController], tmp_path: Path
+    station: tuple[Station, MemoryController], tmp_path: Path
 ) -> None:
     st, _ = station
     path = tmp_path / "scene.avi"
@@ -372,11 +372,11 @@ async def test_the_station_serves_tls(tmp_path: Path) -> None:
 
 
 async def test_a_flooding_page_is_refused_but_its_stop_is_not(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, fake = station
 
-    async def slow_param(param: Any) -> int:  # a slow link: requests stay in flight
+    async def slow_param(param_id: int) -> int:  # a slow link: requests stay in flight
         await asyncio.sleep(0.3)
         return 0
 
@@ -397,7 +397,7 @@ async def test_a_flooding_page_is_refused_but_its_stop_is_not(
 
 
 async def test_a_page_that_never_acknowledges_holds_one_frame_and_slows_nobody(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, _ = station
     async with aiohttp.ClientSession() as http:
@@ -429,7 +429,7 @@ async def test_a_page_that_never_acknowledges_holds_one_frame_and_slows_nobody(
 
 
 async def test_only_a_request_that_ends_the_jog_disarms_the_deadman(
-    station: tuple[Station, FakeController],
+    station: tuple[Station, MemoryController],
 ) -> None:
     st, fake = station
     async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
