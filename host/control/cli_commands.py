@@ -64,7 +64,7 @@ def add_parsers(subparsers: Any) -> None:
     jog = _socket_parser(subparsers, "jog", "move at constant velocity (0 stops)")
     jog.add_argument("mm_s", type=float, help="velocity, mm/s (negative: backwards)")
     jog.set_defaults(handler=run_jog)
-    head = _socket_parser(subparsers, "head", "point the pan/tilt head (degrees)")
+    head = _socket_parser(subparsers, "head", "point the pan/tilt head")
     head.add_argument("pan_deg", type=float, help="pan, degrees")
     head.add_argument("tilt_deg", type=float, help="tilt, degrees")
     head.set_defaults(handler=run_head)
