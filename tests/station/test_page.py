@@ -243,8 +243,14 @@ async def test_dragging_the_view_turns_the_head(
     station_rig: StationRig, ctl: ControlClient, browser: Any
 ) -> None:
     await ctl.request("head", pan_rad=0.0, tilt_rad=0.0)
+
+    async def at_zero() -> bool:
+        head = (await controller(ctl))["head_rad"]
+        return head is not None and abs(head[0]) + abs(head[1]) < HEAD_TOL_RAD
+
+    await until(at_zero, 15.0, "the head at rest at 0°, 0°")  # the drag starts from there
     page = await open_page(browser, station_rig.url())
-    await page.wait_for_function("orbitar.connected && orbitar.frames > 0")
+    await page.wait_for_function("orbitar.connected && orbitar.status !== null")
     box = await page.locator("#view").bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     await page.mouse.move(x, y)
