@@ -36,6 +36,7 @@ from host.config_fields import (
 )
 from host.config_opentrackio import OpenTrackIOConfig, opentrackio_problems
 from host.config_rig import RigConfig
+from host.config_ui import UiConfig, ui_problems
 
 LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
@@ -204,6 +205,7 @@ class Config:
     bus: BusConfig = field(default_factory=BusConfig)
     log: LogConfig = field(default_factory=LogConfig)
     systemd: SystemdConfig = field(default_factory=SystemdConfig)
+    ui: UiConfig = field(default_factory=UiConfig)
 
 
 def load_config(path: str | Path) -> Config:
@@ -348,6 +350,7 @@ def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
         if 0 < (n := len(getattr(config.control, key))) < MIN_TOKEN_CHARS:
             hint = "python3 -c 'import secrets; print(secrets.token_urlsafe(24))' makes one"
             errors.append(f"control.{key}: {n} characters, need {MIN_TOKEN_CHARS} or more ({hint})")
+    errors += ui_problems(config.ui)
     return errors
 
 

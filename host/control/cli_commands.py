@@ -10,19 +10,31 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import io
 import json
 import math
 import os
 import sys
+import time
 from collections.abc import Callable
 from typing import Any, TextIO
 
 from host.config import Config, default_config_text
+from host.control.cli_text import (
+    controller_text,
+    head_error_in_degrees,
+    head_text,
+    link_text,
+    pose_text,
+    status_text,
+)
 from host.control.client import ControlClient, ControlRequestError
 from host.service.unit import DEFAULT_CONFIG, installed_executable, render_unit
 
 SOCKET_ENV = "ORBITAR_SOCKET"
+WATCH_RATE_HZ = 4.0  # a person reads a few redraws a second; more only flickers
+WATCH_SILENT_S = 2.0  # no event for this long: say so (a dropped link sends nothing)
 CLEAR_SCREEN = "\x1b[H\x1b[2J"
 
 Handler = Callable[[argparse.Namespace], int]
@@ -35,8 +47,9 @@ def default_socket() -> str:
 
 def add_parsers(subparsers: Any) -> None:
     """Register every subcommand of this module."""
+    status = _socket_parser(subparsers, "status", "show the daemon, link and controller state")
+    status.set_defaults(handler=run_status)
     simple = {
-        "status": "show the daemon, link and controller state",
         "home": "home the trolley",
         "stop": "controlled stop",
         "estop": "emergency stop (latched until `clear`)",
@@ -44,7 +57,6 @@ def add_parsers(subparsers: Any) -> None:
     }
     for name, text in simple.items():
         _socket_parser(subparsers, name, text).set_defaults(handler=_op_handler(name))
-    subparsers.choices["status"].set_defaults(handler=run_status)
     move = _socket_parser(subparsers, "move", "move the trolley to an arc length")
     move.add_argument("mm", type=float, help="target position along the track, mm")
     move.add_argument("--speed", type=float, help="cruise speed, mm/s")
@@ -53,11 +65,14 @@ def add_parsers(subparsers: Any) -> None:
     jog.add_argument("mm_s", type=float, help="velocity, mm/s (negative: backwards)")
     jog.set_defaults(handler=run_jog)
     head = _socket_parser(subparsers, "head", "point the pan/tilt head")
-    head.add_argument("pan_deg", type=float)
-    head.add_argument("tilt_deg", type=float)
+    head.add_argument("pan_deg", type=float, help="pan, degrees")
+    head.add_argument("tilt_deg", type=float, help="tilt, degrees")
     head.set_defaults(handler=run_head)
     watch = _socket_parser(subparsers, "watch", "live view of pose, state and link")
     watch.add_argument("--count", type=int, help="exit after this many updates")
+    watch.add_argument(
+        "--rate", type=float, default=WATCH_RATE_HZ, help="redraws per second at most (default 4)"
+    )
     watch.set_defaults(handler=run_watch)
     _add_offline_parsers(subparsers)
 
@@ -102,25 +117,45 @@ def run_jog(args: argparse.Namespace) -> int:
 
 
 def run_head(args: argparse.Namespace) -> int:
-    """`orbitar head PAN_DEG TILT_DEG` (degrees here, radians on the socket)."""
+    """`orbitar head PAN_DEG TILT_DEG` (degrees here and in its errors, radians on the socket)."""
     pan, tilt = math.radians(args.pan_deg), math.radians(args.tilt_deg)
     return request(args, "head", pan_rad=pan, tilt_rad=tilt)
-
-
-def request(args: argparse.Namespace, op: str, **op_args: Any) -> int:
-    """Send one request and print its result; 1 with a clear message on any failure."""
-    return _request(args, op, op_args)[0]
 
 
 LINK_DOWN_EXIT = 3  # `orbitar status`: the daemon answers, but its controller data is stale
 
 
 def run_status(args: argparse.Namespace) -> int:
-    """`orbitar status`: as any request, but 3 while the controller link is down."""
-    code, result = _request(args, "status", {})
-    if code == 0 and isinstance(result, dict) and result.get("link_up") is False:
-        return LINK_DOWN_EXIT
-    return code
+    """`orbitar status`: readable (degrees, mm, faults by name, ages) or --json; 3 if link down."""
+    try:
+        status, link = asyncio.run(_status_and_link(args.socket))
+    except (ConnectionError, FileNotFoundError) as exc:
+        return _fail(f"daemon not running? cannot reach {args.socket}: {exc}")
+    except ControlRequestError as exc:
+        return _fail(f"status refused: {exc}")
+    except TimeoutError:
+        return _fail("status: no reply from the daemon")
+    if args.json:
+        emit(json.dumps(status, indent=2, default=str) + "\n")
+    else:
+        emit(status_text(status, link, time.monotonic_ns()))
+    return LINK_DOWN_EXIT if status.get("link_up") is False else 0
+
+
+async def _status_and_link(path: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The status op and, when the link has a controller, its statistics."""
+    async with await ControlClient.connect_unix(path) as client:
+        status = await client.request("status")
+        try:
+            link = await client.request("link_stats")
+        except ControlRequestError:
+            link = {}
+    return status, link
+
+
+def request(args: argparse.Namespace, op: str, **op_args: Any) -> int:
+    """Send one request and print its result; 1 with a clear message on any failure."""
+    return _request(args, op, op_args)[0]
 
 
 def _request(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> tuple[int, Any]:
@@ -130,7 +165,8 @@ def _request(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> tupl
     except (ConnectionError, FileNotFoundError) as exc:
         return _fail(f"daemon not running? cannot reach {args.socket}: {exc}"), None
     except ControlRequestError as exc:
-        return _fail(f"{op} refused: {exc}"), None
+        text = head_error_in_degrees(str(exc)) if op == "head" else str(exc)
+        return _fail(f"{op} refused: {exc.code}: {text}"), None
     except TimeoutError:
         return _fail(f"{op}: no reply from the daemon"), None
     emit(_result_text(result, getattr(args, "json", False)))
@@ -180,9 +216,9 @@ async def _one_request(path: str, op: str, op_args: dict[str, Any]) -> Any:
 
 
 def run_watch(args: argparse.Namespace) -> int:
-    """`orbitar watch`: redraw on every pose/state/link event until Ctrl-C or --count."""
+    """`orbitar watch`: a dashboard redrawn at most --rate times a second, or JSON lines."""
     try:
-        return asyncio.run(_watch(args.socket, args.count, sys.stdout))
+        return asyncio.run(_watch(args.socket, args.count, sys.stdout, args.json, args.rate))
     except KeyboardInterrupt:
         return 0
     except BrokenPipeError:  # `orbitar watch | head`: the reader is done, so are we
@@ -194,36 +230,64 @@ def run_watch(args: argparse.Namespace) -> int:
         return _fail(f"watch refused: {exc}")
 
 
-async def _watch(path: str, count: int | None, out: TextIO) -> int:
-    """Subscribe and render a small dashboard per event."""
+async def _watch(
+    path: str, count: int | None, out: TextIO, as_json: bool, rate_hz: float = WATCH_RATE_HZ
+) -> int:
+    """Subscribe; JSON lines per event, or a dashboard that also says when updates stop."""
+    period_s = 1.0 / max(rate_hz, 0.1)
     view: dict[str, Any] = {}
     async with await ControlClient.connect_unix(path) as client:
         view["status"] = await client.request("status")
+        with contextlib.suppress(ControlRequestError):  # the first link figures, before events
+            link = await client.request("link_stats")
+            view["link"] = {"up": view["status"].get("link_up", False), **link}
         await client.request("subscribe", topics=["pose", "state", "link"])
         updates = 0
+        last_event_s = last_draw_s = time.monotonic()
         while count is None or updates < count:
-            event = await client.next_event(timeout_s=3600)
-            view[event["topic"]] = event["data"]
-            _render(view, out)
-            updates += 1
+            try:
+                event = await client.next_event(timeout_s=period_s)
+            except TimeoutError:
+                event = None
+            except ConnectionError:
+                out.write("the daemon closed the connection (stopped or restarted)\n")
+                out.flush()
+                return 1
+            now = time.monotonic()
+            if event is not None:
+                last_event_s = now
+                view[event["topic"]] = event["data"]
+                if as_json:
+                    emit(json.dumps(event, default=str) + "\n", out)
+                    updates += 1
+                    continue
+            view["silent_s"] = now - last_event_s
+            if not as_json and now - last_draw_s >= period_s:
+                _render(view, out)
+                last_draw_s = now
+                updates += 1
     return 0
 
 
 def _render(view: dict[str, Any], out: TextIO) -> None:
     """One frame of the watch view."""
-    if out.isatty():
-        out.write(CLEAR_SCREEN)
-    state = view.get("state") or view.get("status", {}).get("controller", {})
-    pose = view.get("pose") or view.get("status", {}).get("pose") or {}
-    out.write(f"state: {state.get('state', '?')}  position_mm: {state.get('position_mm', '?')}\n")
-    if pose:
-        t = pose["T_w_c"]
-        out.write(f"camera_mm: {t[0][3]:.1f} {t[1][3]:.1f} {t[2][3]:.1f}  s_mm: {pose['s_mm']}\n")
-    if "link" in view:
-        out.write("link: " + " ".join(f"{k}={v}" for k, v in view["link"].items()) + "\n")
+    status = view.get("status", {})
+    controller = {**status.get("controller", {}), **view.get("state", {})}
+    link = view.get("link", {})
+    up = link.get("up", link.get("state") == "up") if link else status.get("link_up", False)
+    text = CLEAR_SCREEN if out.isatty() else ""
+    text += link_text(bool(up), link)
+    text += controller_text(controller, link)
+    text += head_text(controller)
+    text += pose_text(view.get("pose") or status.get("pose"), time.monotonic_ns())
+    silent = view.get("silent_s", 0.0)
+    if silent > WATCH_SILENT_S:
+        text += f"NO UPDATES for {silent:.1f} s: the link or the daemon is silent\n"
     if "overflow" in view:
-        out.write(f"dropped events: {view['overflow']['total']}\n")
-    out.flush()
+        text += f"dropped events: {view['overflow']['total']}\n"
+    if not out.isatty():
+        text += "\n"
+    emit(text, out)
 
 
 def run_config_check(args: argparse.Namespace) -> int:

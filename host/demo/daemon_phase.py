@@ -67,7 +67,7 @@ async def running_daemon(
     config_path = workdir / "orbitar.toml"
     config_path.write_text(daemon_config_text(world, rig_path, workdir), encoding="utf-8")
     config: Config = loads_config(config_path.read_text(encoding="utf-8"))
-    frames = functools.partial(wiring.frame_loop_factory, camera_source=camera)
+    frames = functools.partial(wiring.frame_loop_factory, camera=camera)
     daemon = Daemon(config, wiring.controller_factory, frames, config_path=config_path)
     task = asyncio.create_task(daemon.run())
     socket_path = workdir / SOCKET_NAME

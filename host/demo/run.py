@@ -341,6 +341,9 @@ def add_parser(subparsers: Any) -> None:
         default="auto",
         help="commission through the daemon first (auto: when --tolerances on)",
     )
+    demo.add_argument("--ui", action="store_true", help="serve the live AR station until Ctrl-C")
+    demo.add_argument("--ui-host", default="127.0.0.1", help="station address (with --ui)")
+    demo.add_argument("--ui-port", type=int, default=8080, help="station port (with --ui)")
     demo.set_defaults(handler=main)
 
 
@@ -348,6 +351,10 @@ def main(args: Any) -> int:
     """Run the demo and print the summary and the report's path."""
     from host.demo.report_pages import summary_text
 
+    if args.ui:
+        from host.station.newcomer import main as station_demo
+
+        return station_demo(args)
     tolerances = args.tolerances == "on"
     commission = args.commission == "on" or (args.commission == "auto" and tolerances)
     try:

@@ -105,6 +105,12 @@ class SimWorld:
         """The python-can virtual channel of the CAN link."""
         return self._can_channel
 
+    @property
+    def link_path(self) -> str:
+        """The pty a daemon opens for this link (pty and XBee; empty for CAN)."""
+        emu = self._emulator
+        return emu.path if isinstance(emu, PtyUart | XBeeModule) else ""
+
     def host_transport(self) -> Transport:
         """The daemon's transport for this link, configured as on a real rig."""
         emu = self._emulator

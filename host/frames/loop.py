@@ -12,12 +12,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from host.frames.sources import Frame, FrameSource
 
@@ -87,6 +88,26 @@ class FrameLoop(Generic[ResultT]):
             self._stop.set()
             await asyncio.to_thread(thread.join, 5.0)
 
+    def status(self) -> dict[str, Any]:
+        """Counters, latency and the source's own state (a file's end, a lost device)."""
+        describe = getattr(self.source, "describe", None)
+        p50, p95 = self.stats.latency_ms(0.5), self.stats.latency_ms(0.95)
+        return {
+            "captured": self.stats.captured,
+            "processed": self.stats.processed,
+            "dropped": self.stats.dropped,
+            "failed": self.stats.failed,
+            "source_ended": self._ended,
+            "latency_ms_p50": None if math.isnan(p50) else round(p50, 2),
+            "latency_ms_p95": None if math.isnan(p95) else round(p95, 2),
+            "source": describe() if callable(describe) else self._plain_source(),
+        }
+
+    def _plain_source(self) -> dict[str, Any]:
+        """What can be said of a source that does not describe itself."""
+        state = "ended" if self._ended else "running"
+        return {"source": type(self.source).__name__, "kind": "camera", "state": state}
+
     def stop(self) -> None:
         """Ask the loop to end after the frame in hand (callable from any thread)."""
         self._stop.set()
@@ -137,3 +158,9 @@ class FrameLoop(Generic[ResultT]):
             self._ended = True
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(wake.set)
+
+
+def frame_loop_status(owner: object) -> dict[str, Any] | None:
+    """The status of the FrameLoop inside a daemon's pose loop, None when it has no camera."""
+    loop = getattr(owner, "loop", None)
+    return loop.status() if isinstance(loop, FrameLoop) else None

@@ -40,6 +40,7 @@ class Registration:
     segments: int
     image: NDArray[np.uint8] | None  # the frame with the overlay drawn, when drawing
     truth: Any  # the source's ground truth, passed through for scoring only
+    frame: NDArray[np.uint8] | None = None  # the captured image as it came (not copied)
 
 
 class Registrar:
@@ -79,6 +80,7 @@ class Registrar:
                 0,
                 None,
                 frame.truth,
+                frame.image,
             )
         T_c_p = invert_T(pose.T_w_c) @ self.workpiece(pose.t_exposure_ns)
         uv, valid = self.camera.project(transform_points(T_c_p, self._centroid_p[None, :]))
@@ -100,4 +102,5 @@ class Registrar:
             segments,
             image,
             frame.truth,
+            frame.image,
         )

@@ -26,6 +26,7 @@ from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
+from host.frames.loop import frame_loop_status
 from host.link.common import LinkState
 from host.link.snapshot import ControllerChange, Snapshot
 from host.outputs.tracking import TrackingOutputs
@@ -34,6 +35,7 @@ from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.lock import DaemonLock
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
+from host.station import attach_station
 
 if TYPE_CHECKING:
     from host.bus.publisher import BusPublisher
@@ -48,7 +50,7 @@ CalibrationProvider = Callable[[], dict[str, Any]]
 
 STOP_ACK_TIMEOUT_S = 0.8  # SIGTERM budget: stop ack + link close + socket close < 2 s
 LINK_CLOSE_TIMEOUT_S = 0.4
-RESTART_SECTIONS = ("link", "camera", "registration", "control", "bus")
+RESTART_SECTIONS = ("link", "camera", "registration", "control", "bus", "ui")
 
 
 class Phase(enum.Enum):
@@ -119,6 +121,7 @@ class Daemon:
         if self.commissioning.after_write is None:  # a calibration's result takes effect now
             self.commissioning.after_write = self.reload
         self.server = ControlServer(self._op_context(), config.control)
+        self.station = attach_station(self) if config.ui.enabled else None
         self._stop = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
         self._started_s = time.monotonic()
@@ -157,6 +160,8 @@ class Daemon:
             self.outputs.send(sample)  # FreeD is held until homed, OpenTrackIO says it
             if self.bus is not None:
                 self.bus.publish_pose(sample)
+            if self.station is not None:
+                self.station.on_pose(sample)
             self.record(KIND_POSE, sample.t_ns, data)
         except Exception as exc:  # an output must never break the frame loop
             self.output_errors += 1
@@ -191,6 +196,7 @@ class Daemon:
             "output_errors": self.output_errors,
             # the error budget at the current pose (docs/COMMISSIONING.md), None when unknown
             "overlay_sigma_px": self.commissioning.overlay_sigma_px(self.controller.snapshot()),
+            "frames": frame_loop_status(self.frame_loop),
         }
 
     async def reload(self) -> list[str]:
@@ -260,6 +266,8 @@ class Daemon:
     async def _start(self) -> None:
         """Open the socket and the outputs, then start the background tasks."""
         await self.server.start()
+        if self.station is not None:
+            await self.station.start()
         await self.outputs.start(self.config)
         self._restart_recorder(self.config)
         self._start_bus()
@@ -279,6 +287,8 @@ class Daemon:
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
+        if self.station is not None:
+            await self.station.close()
         await self._halt_and_close()
         await self.server.close()
         self.outputs.close()

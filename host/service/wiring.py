@@ -181,8 +181,16 @@ def controller_factory(
         streams_hz=config_stream_rates(config),
     )
     ctrl.add_sink(RecordingSink(record_tap))
+    ctrl.add_stats(lambda: clock_stats(ctrl))
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
     return ctrl
+
+
+def clock_stats(ctrl: Controller) -> dict[str, Any]:
+    """The clock sync's error and drift, for the station's and the terminal's status."""
+    clock = ctrl.session.clock.estimate()
+    sigma_us = round(clock.sigma_ns / 1e3, 3) if clock.probes_used else None
+    return {"clock_sigma_us": sigma_us, "clock_drift_ppm": round(clock.drift_ppm, 3)}
 
 
 def config_stream_rates(config: Config) -> dict[Stream, int]:
@@ -477,16 +485,16 @@ def frame_loop_factory(
     controller: ControllerLike,
     pose_sink: PoseSink,
     record_tap: RecordTap,
-    camera_source: FrameSource | None = None,
+    camera: FrameSource | None = None,
 ) -> FrameLoopLike:
     """The pose loop on the controller's samples: per camera frame, or at a fixed rate.
 
-    `camera_source` replaces the configured camera (the demo hands the simulator's camera in).
+    `camera` overrides `[camera] source` (the demo's simulated camera lives in its process).
     """
     if not isinstance(controller, Controller):
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
-    camera = camera_source or open_camera(config)
+    camera = camera or open_camera(config)
     latency_ms = exposure_latency_ms(config) if camera is not None else 0.0
     poses, feed = build_pose_source(
         config, config_stream_rates(config), latency_ms, controller.chain_pitch_mm

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import math
 import os
 import sys
+import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -56,11 +58,31 @@ async def test_motion_commands(served: tuple[ControlServer, MemoryController, st
     assert fake.state.name == "ESTOP"
 
 
-async def test_status_prints_fields(served: tuple[ControlServer, MemoryController, str]) -> None:
-    code, out, _ = await cli("status", "--socket", served[2])
+async def test_status_reads_in_degrees_millimetres_and_ages(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
+    _, fake, sock = served
+    await fake.set_head(math.radians(12.5), math.radians(-20.0))
+    code, out, _ = await cli("status", "--socket", sock)
     assert code == 0
-    assert "link_up: True" in out
-    assert "state: IDLE" in out
+    lines = {line.split()[0]: line for line in out.splitlines()}
+    assert lines["controller"].split()[1] == "IDLE"
+    assert "no faults" in lines["controller"]
+    assert "pan 12.50°" in lines["head"]
+    assert "tilt -20.00°" in lines["head"]
+    assert "x 10.0  y 20.0  z 4000.0 mm" in lines["camera"]
+    assert "old" in lines["camera"]  # every pose says how old it is
+    assert "[[" not in out  # no raw matrices
+    code, out, _ = await cli("status", "--json", "--socket", sock)
+    assert json.loads(out)["link_up"] is True
+
+
+async def test_head_errors_answer_in_degrees(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
+    code, _, err = await cli("head", "0", "100", "--socket", served[2])
+    assert code == 1
+    assert "tilt 100.00° is outside the head's limits [-90.00°, 90.00°]" in err
 
 
 async def test_refused_request_exits_1_with_reason(
@@ -80,17 +102,48 @@ async def test_no_daemon_exits_1(tmp_path: Path) -> None:
     assert "daemon not running" in err
 
 
-async def test_watch_counts_updates(served: tuple[ControlServer, MemoryController, str]) -> None:
+async def test_watch_redraws_at_a_readable_rate(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
     server, _, sock = served
     proc = asyncio.create_task(cli("watch", "--count", "3", "--socket", sock))
-    while not proc.done():
+    t0 = time.monotonic()
+    sent = 0
+    while not proc.done():  # 50 events a second; the screen redraws 4 times a second
         server.publish("pose", POSE.to_dict())
-        server.publish("state", {"state": "MOVING", "position_mm": 12.5})
+        server.publish("state", {"state": "MOVING", "position_mm": 12.5, "fault_names": ["ESTOP"]})
+        sent += 1
+        await asyncio.sleep(0.02)
+    code, out, _ = await proc
+    assert code == 0
+    assert out.count("controller ") == 3
+    assert "MOVING · FAULTS: ESTOP · position 12.5 mm" in out
+    assert "pan 0.00°" in out
+    assert sent > 3 * 5  # many events were folded into each redraw
+    assert time.monotonic() - t0 > 0.4
+
+
+async def test_watch_json_prints_one_event_per_line(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
+    server, _, sock = served
+    proc = asyncio.create_task(cli("watch", "--json", "--count", "4", "--socket", sock))
+    while not proc.done():
+        server.publish("state", {"state": "READY", "position_mm": 1.0})
         await asyncio.sleep(0.05)
     code, out, _ = await proc
     assert code == 0
-    assert "camera_mm: 10.0 20.0 4000.0" in out or "state: MOVING" in out
-    assert out.count("state:") == 3
+    events = [json.loads(line) for line in out.splitlines()]
+    assert len(events) == 4
+    assert events[0] == {"topic": "state", "data": {"state": "READY", "position_mm": 1.0}}
+
+
+async def test_watch_says_when_updates_stop(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
+    code, out, _ = await cli("watch", "--count", "12", "--rate", "5", "--socket", served[2])
+    assert code == 0
+    assert "NO UPDATES for" in out
 
 
 async def test_config_check_and_default(tmp_path: Path) -> None:

@@ -1,0 +1,250 @@
+"""Operator station: exposure-to-browser latency and the frame loop's cost of viewers.
+
+Run: python benchmarks/bench_station.py [--seconds S] [--fps F] [--viewers N]
+Prints `metric: value` lines. A synthetic 1280×1024 camera at 30 fps feeds the daemon's own
+FrameLoop; each frame is registered (a fixed pose) and handed to the station, which draws the
+overlay and encodes it. Headless Debian Chromium pages receive the WebSocket frames and report
+exposure-to-decode latency (their clock mapped to the host's by ping); beside them, in the same
+run, a client of the MJPEG endpoint decodes each part with OpenCV and reports its latency.
+The frame loop's fps is measured with 0 and with N viewers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import os
+import threading
+import time
+from typing import Any
+
+import aiohttp
+import cv2
+import numpy as np
+
+from host.config import Config, config_from_dict
+from host.control.ops import OpContext
+from host.frames.loop import FrameLoop
+from host.frames.registrar import Registration
+from host.frames.sources import Frame
+from host.registration.pose_buffer import LookupStatus
+from host.service.wiring import build_rig, workpiece_pose
+from host.station.server import Station
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run"]  # fmt: skip
+TOKEN = "bench-token-0123456"
+
+
+class SyntheticCamera:
+    """Frames of a textured 1280×1024 scene at a fixed rate, stamped at exposure."""
+
+    def __init__(self, width: int, height: int, fps: float) -> None:
+        rng = np.random.default_rng(3)
+        self.base = rng.integers(40, 90, (height, width, 3), dtype=np.uint8)
+        cv2.GaussianBlur(self.base, (0, 0), 3, dst=self.base)
+        self.period_s = 1.0 / fps
+        self._next = time.monotonic()
+        self._index = 0
+        self._closed = threading.Event()
+
+    def read(self) -> Frame | None:
+        """The next frame, on schedule (a camera never bursts)."""
+        self._next += self.period_s
+        delay = self._next - time.monotonic()
+        if delay > 0 and self._closed.wait(delay):
+            return None
+        if self._closed.is_set():
+            return None
+        self._index += 1
+        image = np.roll(self.base, self._index * 4, axis=1)  # a new buffer each frame
+        return Frame(self._index, image, time.monotonic_ns())
+
+    def close(self) -> None:
+        """Stop."""
+        self._closed.set()
+
+
+def bench_config(width: int, height: int) -> Config:
+    """The paper's camera at full resolution, the station on a free port."""
+    return config_from_dict(
+        {
+            "camera": {"source": "none", "width": width, "height": height,
+                       "u0": width / 2, "v0": height / 2, "fx": 1400.0, "fy": 1400.0},
+            "model": {"position_mm": [-300.0, -300.0, 0.0]},
+            "head": {"tilt_max_deg": 80.0},
+            "ui": {"enabled": True, "port": 0, "operator_token": TOKEN},
+        }
+    )  # fmt: skip
+
+
+def registrar(config: Config) -> Any:
+    """A fixed pose aimed at the workpiece (registration's own cost is benchmarked elsewhere)."""
+    rig = build_rig(config)
+    target = workpiece_pose(config)[:3, 3] + [0.0, 0.0, 700.0]
+    pan, tilt = rig.aim(150.0, target)
+    T_w_c = rig.T_w_c(150.0, pan, tilt)
+
+    def process(frame: Frame) -> Registration:
+        return Registration(
+            frame.index, frame.exposure_ns, LookupStatus.OK, T_w_c, 150.0, pan, tilt,
+            None, 0, None, None, frame.image,
+        )  # fmt: skip
+
+    return process
+
+
+def loop_fps(loop: FrameLoop[Any], seconds: float) -> float:
+    """Frames the loop processed per second over the next `seconds` (blocking wait)."""
+    n0, t0 = loop.stats.processed, time.monotonic()
+    time.sleep(seconds)
+    return (loop.stats.processed - n0) / (time.monotonic() - t0)
+
+
+async def mjpeg_client(url: str, seconds: float, out: list[float]) -> int:
+    """Read the MJPEG stream, decode each part, keep exposure-to-decode latencies."""
+    frames = 0
+    deadline = time.monotonic() + seconds
+    async with aiohttp.ClientSession() as http, http.get(url) as reply:
+        reader = aiohttp.MultipartReader.from_response(reply)
+        while time.monotonic() < deadline:
+            part = await reader.next()
+            if part is None:
+                break
+            assert isinstance(part, aiohttp.BodyPartReader)
+            exposure_ms = float(part.headers["X-Exposure-Ms"])
+            data = await part.read()
+            cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+            out.append(time.monotonic_ns() / 1e6 - exposure_ms)
+            frames += 1
+    return frames
+
+
+async def ws_clients(url: str, count: int, seconds: float) -> None:
+    """Viewers that acknowledge every frame at once (no decoding): the daemon's side alone."""
+
+    async def one(http: aiohttp.ClientSession) -> None:
+        async with http.ws_connect(url) as ws:
+            await ws.send_json({"type": "hello", "token": TOKEN})
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline:
+                msg = await ws.receive(timeout=5.0)
+                if msg.type is aiohttp.WSMsgType.BINARY:
+                    await ws.send_json({"type": "ack"})
+
+    async with aiohttp.ClientSession() as http:
+        await asyncio.gather(*(one(http) for _ in range(count)))
+
+
+async def daemon_side_fps(loop: FrameLoop[Any], ws_url: str, count: int, seconds: float) -> float:
+    """Frame loop fps while `count` light viewers in another process take every frame."""
+    import sys
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--clients", ws_url, "--viewers", str(count),
+        "--seconds", str(seconds + 2.0),
+    )  # fmt: skip
+    await asyncio.sleep(1.0)
+    fps = await asyncio.to_thread(loop_fps, loop, seconds)
+    await proc.wait()
+    return fps
+
+
+def pct(values: list[float], q: float) -> float:
+    """A percentile (nan when empty)."""
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
+async def run(seconds: float, fps: float, viewers: int, width: int, height: int) -> None:
+    """The whole measurement."""
+    from playwright.async_api import async_playwright
+
+    config = bench_config(width, height)
+    station = Station(config, OpContext(None))
+    await station.start()
+    source = SyntheticCamera(width, height, fps)
+    loop: FrameLoop[Registration] = FrameLoop(source, registrar(config), [station.on_registration])
+    frames_task = asyncio.create_task(loop.run())
+    url = f"http://127.0.0.1:{station.port}/#token={TOKEN}"
+    try:
+        await asyncio.sleep(1.0)
+        fps0 = await asyncio.to_thread(loop_fps, loop, seconds)
+        ws_url = f"http://127.0.0.1:{station.port}/ws"
+        fps_light = await daemon_side_fps(loop, ws_url, viewers, seconds)
+        async with async_playwright() as pw:
+            browser = await pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            pages, first_frame_s = [], []
+            for _ in range(viewers):
+                page = await browser.new_page(viewport={"width": 1600, "height": 1100},
+                                              bypass_csp=True)  # fmt: skip
+                t0 = time.monotonic()
+                await page.goto(url)
+                await page.wait_for_function("orbitar.frames > 0", timeout=10_000)
+                first_frame_s.append(time.monotonic() - t0)
+                pages.append(page)
+            await asyncio.sleep(2.0)  # clock offsets settle (pings every 2 s)
+            for page in pages:
+                await page.evaluate("orbitar.latencies = []; orbitar.frames = 0")
+            cpu0, hub0 = os.times(), station.hub.stats.encoded
+            mjpeg: list[float] = []
+            mjpeg_url = f"http://127.0.0.1:{station.port}/mjpeg?token={TOKEN}"
+            mjpeg_task = asyncio.create_task(mjpeg_client(mjpeg_url, seconds, mjpeg))
+            fps_n = await asyncio.to_thread(loop_fps, loop, seconds)
+            mjpeg_frames = await mjpeg_task
+            cpu1, hub1 = os.times(), station.hub.stats.encoded
+            lat: list[float] = []
+            delivered = []
+            for page in pages:
+                lat += [float(v) for v in await page.evaluate("orbitar.latencies")]
+                delivered.append(float(await page.evaluate("orbitar.frames")) / seconds)
+            await browser.close()
+    finally:
+        loop.stop()
+        source.close()
+        await frames_task
+        await station.close()
+    encoded = max(1, hub1 - hub0)
+    cpu_s = (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)
+    print(f"resolution: {width}x{height}")
+    print(f"camera_fps: {fps:.1f}")
+    print(f"viewers: {viewers}")
+    print(f"ws_latency_ms_p50: {pct(lat, 50):.1f}")
+    print(f"ws_latency_ms_p95: {pct(lat, 95):.1f}")
+    print(f"mjpeg_latency_ms_p50: {pct(mjpeg, 50):.1f}")
+    print(f"mjpeg_latency_ms_p95: {pct(mjpeg, 95):.1f}")
+    print(f"ws_delivered_fps_per_viewer: {np.mean(delivered):.1f}")
+    print(f"mjpeg_delivered_fps: {mjpeg_frames / seconds:.1f}")
+    print(f"first_frame_s_max: {max(first_frame_s):.2f}")
+    print(f"encode_cpu_ms_per_frame: {station.hub.stats.cpu_ms_mean():.2f}")
+    print(f"process_cpu_ms_per_frame: {cpu_s * 1e3 / encoded:.2f}  # includes the camera, loop")
+    print(f"frame_loop_fps_0_viewers: {fps0:.2f}")
+    print(f"frame_loop_fps_{viewers}_viewers: {fps_n:.2f}")
+    print(f"frame_loop_fps_cost_pct: {100.0 * (fps0 - fps_n) / fps0:.2f}  # browsers share the CPU")
+    print(f"frame_loop_fps_{viewers}_light_viewers: {fps_light:.2f}  # acking clients, no decode")
+    print(f"frame_loop_fps_cost_pct_light: {100.0 * (fps0 - fps_light) / fps0:.2f}")
+    ready = station.station_stats()["jpeg_ready_ms_p50"]
+    print(f"jpeg_ready_ms_p50: {ready}  # exposure to encoded JPEG, in the daemon")
+    print(f"registration_latency_ms_p50: {loop.stats.latency_ms(0.5):.1f}  # exposure to pose")
+    print(f"frames_dropped_by_loop: {loop.stats.dropped}")
+    print(f"encoder_dropped: {station.hub.stats.dropped}")
+
+
+def main() -> None:
+    """Parse arguments and run."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=8.0)
+    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--viewers", type=int, default=4)
+    parser.add_argument("--width", type=int, default=1280)
+    parser.add_argument("--height", type=int, default=1024)
+    parser.add_argument("--clients", metavar="WS_URL", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.clients:
+        asyncio.run(ws_clients(args.clients, args.viewers, args.seconds))
+        return
+    asyncio.run(run(args.seconds, args.fps, args.viewers, args.width, args.height))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,421 @@
+// Orbitar operator station: one WebSocket to the daemon, plain JS, no library, works offline.
+// Frames arrive as binary messages (header length, JSON header, JPEG) and are acknowledged once
+// drawn; everything else is JSON. Motion goes through the daemon's control operations.
+"use strict";
+
+const HOLD_PERIOD_MS = 100;       // dead-man heartbeat while a jog button is held
+const PING_PERIOD_MS = 2000;      // clock offset between this page and the daemon
+const RECONNECT_MIN_MS = 500;
+const RECONNECT_MAX_MS = 5000;
+const DRAG_DEG_PER_PX = 0.1;
+const TAP_SLOP_PX = 8;
+
+const $ = (id) => document.getElementById(id);
+const state = {
+  ws: null, role: "", info: null, connected: false, token: "", refused: false,
+  frames: 0, fpsTimes: [], lastLatencyMs: null, latencies: [], offsetMs: null, pings: [],
+  points: {}, frameSize: [640, 480], status: null, jog: null, reqId: 0, picked: [],
+  reconnectMs: RECONNECT_MIN_MS, pendingHead: null, deadman: 0, lastReply: null,
+};
+window.orbitar = state;  // for the browser tests and the curious
+
+// ---- connection --------------------------------------------------------------------------
+
+function tokenFromPage() {
+  const hash = new URLSearchParams(location.hash.slice(1));
+  return hash.get("token") || sessionStorage.getItem("orbitar-token") || "";
+}
+
+function connect() {
+  state.token = tokenFromPage();
+  if (!state.token) { showLogin("This station needs a token."); return; }
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(`${scheme}://${location.host}/ws`);
+  ws.binaryType = "arraybuffer";
+  state.ws = ws;
+  ws.onopen = () => ws.send(JSON.stringify({ type: "hello", token: state.token }));
+  ws.onmessage = (ev) => (typeof ev.data === "string" ? onJson(JSON.parse(ev.data)) : onFrame(ev.data));
+  ws.onclose = (ev) => onClosed(ev);
+}
+
+function onClosed(ev) {
+  state.connected = false;
+  endJog("connection lost");
+  setConn(false, ev.code === 4401 ? "token refused" : "disconnected — reconnecting…");
+  if (ev.code === 4401) { state.refused = true; showLogin("The daemon refused this token."); return; }
+  setTimeout(connect, state.reconnectMs);
+  state.reconnectMs = Math.min(state.reconnectMs * 2, RECONNECT_MAX_MS);
+}
+
+function send(msg) {
+  if (state.ws && state.ws.readyState === WebSocket.OPEN) { state.ws.send(JSON.stringify(msg)); return true; }
+  return false;
+}
+
+function op(name, args = {}) {
+  state.reqId += 1;
+  return send({ type: "op", id: state.reqId, op: name, args });
+}
+
+function onJson(msg) {
+  if (msg.type === "hello") return onHello(msg);
+  if (msg.type === "status") return onStatus(msg);
+  if (msg.type === "pong") return onPong(msg);
+  if (msg.type === "reply") {
+    state.lastReply = msg;
+    if (!msg.ok) toast(`${msg.op}: ${msg.code} — ${msg.message || ""}`);
+    return undefined;
+  }
+  if (msg.type === "deadman") { state.deadman += 1; toast(`stopped by the dead-man rule: ${msg.why}`); }
+  if (msg.type === "error") toast(`${msg.code}`);
+  return undefined;
+}
+
+function onHello(msg) {
+  state.connected = true; state.refused = false; state.role = msg.role; state.info = msg;
+  state.reconnectMs = RECONNECT_MIN_MS;
+  sessionStorage.setItem("orbitar-token", state.token);
+  $("login").hidden = true;
+  document.body.classList.toggle("viewer", msg.role !== "operator");
+  $("role").textContent = msg.role === "operator" ? "operator" : "viewer (no motion)";
+  setConn(true, "connected");
+  setupHead(msg.head_deg); drawPlan(msg.track); showParts(msg.parts);
+  ping();
+}
+
+function setConn(ok, text) {
+  const el = $("conn"); el.textContent = text; el.className = ok ? "ok" : "bad";
+}
+
+function ping() { send({ type: "ping", t: performance.now() }); }
+
+function onPong(msg) {
+  const now = performance.now(); const rtt = now - msg.t;
+  state.pings.push({ rtt, offset: msg.host_ms - (msg.t + rtt / 2) });
+  if (state.pings.length > 10) state.pings.shift();
+  state.offsetMs = state.pings.reduce((a, b) => (b.rtt < a.rtt ? b : a)).offset;  // fastest wins
+}
+
+// ---- frames ------------------------------------------------------------------------------
+
+async function onFrame(buffer) {
+  const view = new DataView(buffer);
+  const headLen = view.getUint32(0);
+  const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
+  const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
+  let latency = null;
+  try {
+    const bitmap = await createImageBitmap(blob);
+    const canvas = $("view");
+    if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+      canvas.width = bitmap.width; canvas.height = bitmap.height;
+    }
+    canvas.getContext("2d").drawImage(bitmap, 0, 0);
+    bitmap.close();
+    if (state.offsetMs !== null) latency = performance.now() + state.offsetMs - header.exposure_ms;
+  } finally {
+    send({ type: "ack", index: header.index, latency_ms: latency });
+  }
+  state.frames += 1; state.points = header.points || {}; state.frameSize = [header.width, header.height];
+  state.lastLatencyMs = latency;
+  if (latency !== null) { state.latencies.push(latency); if (state.latencies.length > 300) state.latencies.shift(); }
+  const now = performance.now(); state.fpsTimes.push(now);
+  while (state.fpsTimes.length && state.fpsTimes[0] < now - 2000) state.fpsTimes.shift();
+  const homed = !state.status || (state.status.link || {}).homed !== false;
+  let note = header.registered ? "" : "no pose for this frame: overlay withheld";
+  if (header.registered && !homed) note = "not homed: the overlay assumes the trolley at home until Home is run";
+  $("viewnote").textContent = note;
+  $("viewnote").hidden = !note;
+}
+
+function pageFps() {
+  const t = state.fpsTimes;
+  return t.length < 2 ? 0 : ((t.length - 1) * 1000) / (t[t.length - 1] - t[0]);
+}
+
+// ---- motion: press-and-hold jog with a dead-man --------------------------------------------
+
+function startJog(button) {
+  if (state.role !== "operator" || state.jog) return;
+  const fast = button.dataset.fast ? 3 : 1;
+  const v = Number(button.dataset.dir) * Number($("speed").value) * fast;
+  op("jog", { velocity_mm_s: v });
+  send({ type: "hold" });
+  state.jog = { button, timer: setInterval(() => send({ type: "hold" }), HOLD_PERIOD_MS) };
+  button.classList.add("held");
+}
+
+function endJog(why) {
+  if (!state.jog) return;
+  clearInterval(state.jog.timer);
+  state.jog.button.classList.remove("held");
+  state.jog = null;
+  op("jog", { velocity_mm_s: 0 });
+  if (why) toast(`jog ended: ${why}`);
+}
+
+for (const button of document.querySelectorAll(".jogbtn")) {
+  button.addEventListener("pointerdown", (ev) => {
+    ev.preventDefault(); button.setPointerCapture(ev.pointerId); startJog(button);
+  });
+  for (const type of ["pointerup", "pointercancel", "lostpointercapture"]) {
+    button.addEventListener(type, () => endJog());
+  }
+  button.addEventListener("contextmenu", (ev) => ev.preventDefault());
+}
+window.addEventListener("blur", () => endJog("the page lost focus"));
+document.addEventListener("visibilitychange", () => { if (document.hidden) endJog("the page was hidden"); });
+window.addEventListener("pagehide", () => endJog());
+
+$("estop").addEventListener("pointerdown", (ev) => { ev.preventDefault(); endJog(); op("estop"); });
+$("stop").addEventListener("pointerdown", (ev) => { ev.preventDefault(); endJog(); op("stop"); });
+$("home").addEventListener("click", () => op("home"));
+$("clear").addEventListener("click", () => op("clear"));
+$("speed").addEventListener("input", () => { $("speed-out").textContent = `${$("speed").value} mm/s`; });
+
+// ---- head: sliders and drag on the view --------------------------------------------------
+
+function setupHead(limits) {
+  for (const axis of ["pan", "tilt"]) {
+    const el = $(axis); el.min = limits[axis][0]; el.max = limits[axis][1];
+  }
+}
+
+function sendHead(panDeg, tiltDeg) {
+  const clamp = (v, [lo, hi]) => Math.min(hi, Math.max(lo, v));
+  const lim = state.info.head_deg;
+  const pan = clamp(panDeg, lim.pan); const tilt = clamp(tiltDeg, lim.tilt);
+  $("pan").value = pan; $("tilt").value = tilt; showHead(pan, tilt);
+  op("head", { pan_rad: (pan * Math.PI) / 180, tilt_rad: (tilt * Math.PI) / 180 });
+}
+
+function showHead(pan, tilt) {
+  $("pan-out").textContent = `${Number(pan).toFixed(1)}°`; $("tilt-out").textContent = `${Number(tilt).toFixed(1)}°`;
+}
+
+for (const axis of ["pan", "tilt"]) {
+  $(axis).addEventListener("input", () => showHead($("pan").value, $("tilt").value));
+  $(axis).addEventListener("change", () => sendHead(Number($("pan").value), Number($("tilt").value)));
+}
+
+const canvas = $("view");
+let drag = null;
+canvas.addEventListener("pointerdown", (ev) => {
+  canvas.setPointerCapture(ev.pointerId);
+  drag = { x: ev.clientX, y: ev.clientY, pan: Number($("pan").value), tilt: Number($("tilt").value), moved: false };
+});
+canvas.addEventListener("pointermove", (ev) => {
+  if (!drag) return;
+  const dx = ev.clientX - drag.x; const dy = ev.clientY - drag.y;
+  if (Math.hypot(dx, dy) > TAP_SLOP_PX) drag.moved = true;
+  if (drag.moved && state.role === "operator") {
+    $("pan").value = drag.pan - dx * DRAG_DEG_PER_PX; $("tilt").value = drag.tilt + dy * DRAG_DEG_PER_PX;
+    showHead($("pan").value, $("tilt").value);
+  }
+});
+canvas.addEventListener("pointerup", (ev) => {
+  if (!drag) return;
+  const d = drag; drag = null;
+  if (d.moved && state.role === "operator") sendHead(Number($("pan").value), Number($("tilt").value));
+  else if (!d.moved) tapView(ev);
+});
+canvas.addEventListener("pointercancel", () => { drag = null; });
+
+function tapView(ev) {
+  const rect = canvas.getBoundingClientRect();
+  const u = ((ev.clientX - rect.left) * state.frameSize[0]) / rect.width;
+  const v = ((ev.clientY - rect.top) * state.frameSize[1]) / rect.height;
+  let best = null;
+  for (const [name, [pu, pv]] of Object.entries(state.points)) {
+    const d = Math.hypot(pu - u, pv - v);
+    if (d < 40 && (!best || d < best.d)) best = { name, d };
+  }
+  if (best) pickPoint(best.name);
+}
+
+// ---- the track plan ------------------------------------------------------------------------
+
+const SVG = "http://www.w3.org/2000/svg";
+let planBox = null;
+
+function svgEl(tag, attrs) {
+  const el = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) el.setAttribute(k, v);
+  return el;
+}
+
+function drawPlan(track) {
+  const svg = $("plan"); svg.replaceChildren();
+  const xs = track.plan_xy_mm.map((p) => p[0]); const ys = track.plan_xy_mm.map((p) => -p[1]);
+  const pad = 300;
+  planBox = { x: Math.min(...xs) - pad, y: Math.min(...ys) - pad };
+  planBox.w = Math.max(...xs) + pad - planBox.x; planBox.h = Math.max(...ys) + pad - planBox.y;
+  svg.setAttribute("viewBox", `${planBox.x} ${planBox.y} ${planBox.w} ${planBox.h}`);
+  const pts = track.plan_xy_mm.map((p) => `${p[0]},${-p[1]}`).join(" ");
+  svg.append(svgEl(track.closed ? "polygon" : "polyline", { points: pts, class: "rail" }));
+  for (const m of track.marks) svg.append(svgEl("circle", { cx: m.xy[0], cy: -m.xy[1], r: 60, class: "mark" }));
+  const home = nearestPlanPoint(track.home_s_mm);
+  if (home) svg.append(svgEl("rect", { x: home[0] - 70, y: -home[1] - 70, width: 140, height: 140, class: "home" }));
+  svg.append(svgEl("circle", { id: "trolley", cx: 0, cy: 0, r: 110, class: "trolley", visibility: "hidden" }));
+  svg.append(svgEl("circle", { id: "target", cx: 0, cy: 0, r: 160, class: "target", visibility: "hidden" }));
+}
+
+function nearestPlanPoint(s) {
+  const t = state.info.track; let best = 0;
+  for (let i = 0; i < t.plan_s_mm.length; i++) if (Math.abs(t.plan_s_mm[i] - s) < Math.abs(t.plan_s_mm[best] - s)) best = i;
+  return t.plan_xy_mm[best];
+}
+
+function planPositionAt(s) {
+  const t = state.info.track; const ss = t.plan_s_mm; const xy = t.plan_xy_mm;
+  const len = t.length_mm; let q = t.closed ? ((s % len) + len) % len : Math.min(Math.max(s, 0), len);
+  for (let i = 1; i < ss.length; i++) {
+    if (q <= ss[i]) {
+      const f = (q - ss[i - 1]) / (ss[i] - ss[i - 1] || 1);
+      return [xy[i - 1][0] + f * (xy[i][0] - xy[i - 1][0]), xy[i - 1][1] + f * (xy[i][1] - xy[i - 1][1])];
+    }
+  }
+  return xy[xy.length - 1];
+}
+
+$("plan").addEventListener("pointerup", (ev) => {
+  if (state.role !== "operator" || !state.info) return;
+  const svg = $("plan"); const pt = svg.createSVGPoint(); pt.x = ev.clientX; pt.y = ev.clientY;
+  const p = pt.matrixTransform(svg.getScreenCTM().inverse());
+  const t = state.info.track; let best = 0; let bestD = Infinity;
+  t.plan_xy_mm.forEach((q, i) => { const d = Math.hypot(q[0] - p.x, -q[1] - p.y); if (d < bestD) { bestD = d; best = i; } });
+  if (bestD > 600) return;
+  const s = t.plan_s_mm[best];
+  const target = $("target"); target.setAttribute("cx", t.plan_xy_mm[best][0]); target.setAttribute("cy", -t.plan_xy_mm[best][1]);
+  target.setAttribute("visibility", "visible");
+  $("plan-note").textContent = `moving to s = ${s.toFixed(0)} mm`;
+  op("move_track", { track_s_mm: s, speed_mm_s: Number($("speed").value) });
+});
+
+// ---- status --------------------------------------------------------------------------------
+
+const fmt = (v, digits = 1, unit = "") => (v === null || v === undefined || Number.isNaN(v) ? "—" : `${Number(v).toFixed(digits)}${unit}`);
+const deg = (rad) => (rad === null || rad === undefined ? null : (rad * 180) / Math.PI);
+
+function onStatus(msg) {
+  state.status = msg;
+  const st = msg.status || {}; const ctrl = st.controller || {}; const link = msg.link || {};
+  const svc = st.service || {}; const frames = msg.frames || {}; const stn = msg.station || {};
+  const pose = st.pose; const head = ctrl.head_rad || [null, null];
+  const ageMs = pose ? msg.host_ms - pose.t_ns / 1e6 : null;
+  const src = frames.source || {};
+  const rows = [
+    ["link", st.link_up ? "up" : `down ${svc.link_error || ""}`, st.link_up ? "ok" : "bad"],
+    ["RTT", fmt(link.rtt_ms, 1, " ms")],
+    ["retransmits / lost", `${link.retransmits ?? "—"} / ${link.rx_lost ?? "—"}`],
+    ["drops (bad frames)", `${link.drops ?? "—"}`],
+    ["clock sync σ", fmt(link.clock_sigma_us, 1, " µs")],
+    ["state", ctrl.state || "—", ctrl.state === "FAULT" || ctrl.state === "ESTOP" ? "bad" : ""],
+    ["faults", faultText(ctrl), ctrl.faults ? "bad" : "ok"],
+    ["position", fmt(ctrl.position_mm, 1, " mm")],
+    ["homed", link.homed ? "yes" : "no — press Home to reference the track", link.homed ? "ok" : "bad"],
+    ["track s (corrected)", fmt(link.track_s_mm, 1, " mm")],
+    ["head pan / tilt", `${fmt(deg(head[0]), 2, "°")} / ${fmt(deg(head[1]), 2, "°")}`],
+    ["chain scale", link.chain_scale === undefined ? "— (no references)" : fmt(link.chain_scale, 5)],
+    ["references used / rejected", link.references_used === undefined ? "—" : `${link.references_used} / ${link.references_rejected}`],
+    ["tooth skips found", link.skips_detected ?? "—"],
+    ["position σ", fmt(link.position_sigma_mm, 2, " mm")],
+    ["pose age", fmt(ageMs, 0, " ms")],
+    ["camera", `${src.kind || "none"} ${src.state || ""} ${src.detail || ""}`, src.state && src.state !== "running" ? "bad" : ""],
+    ["frame loop", `${fmt(svc.fps, 1, " fps")}, dropped ${frames.dropped ?? 0}`],
+    ["view", `${fmt(pageFps(), 1, " fps")}, ${fmt(state.lastLatencyMs, 0, " ms")} latency`],
+    ["encoder", `${fmt(stn.encode_fps, 1, " fps")}, ${fmt(stn.encode_cpu_ms, 1, " ms")}/frame, dropped ${stn.encode_dropped ?? 0}`],
+    ["viewers", `${stn.viewers ?? 0}`],
+  ];
+  const table = $("status"); table.replaceChildren();
+  for (const [k, v, cls] of rows) {
+    const tr = document.createElement("tr"); const th = document.createElement("th"); const td = document.createElement("td");
+    th.textContent = k; td.textContent = v; if (cls) td.className = cls; tr.append(th, td); table.append(tr);
+  }
+  $("figures").textContent = `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")}`;
+  const latched = ctrl.state === "ESTOP" || ctrl.state === "FAULT";
+  const faults = (ctrl.fault_names || []).join(", ");
+  $("motion-state").textContent = latched ? `${ctrl.state} LATCHED (${faults}): Clear releases` : ctrl.state || "";
+  $("motion-state").classList.toggle("latched", latched);
+  showTrolley(link.track_s_mm ?? (ctrl.position_mm ?? null));
+  if (!drag && head[0] !== null && document.activeElement !== $("pan") && document.activeElement !== $("tilt")) {
+    $("pan").value = deg(head[0]); $("tilt").value = deg(head[1]); showHead(deg(head[0]), deg(head[1]));
+  }
+}
+
+function faultText(ctrl) {
+  const names = ctrl.fault_names || [];
+  if (names.length) return names.join(", ");
+  return ctrl.faults ? `0x${Number(ctrl.faults).toString(16).padStart(4, "0")} (unnamed bits)` : "none";
+}
+
+function showTrolley(s) {
+  const el = $("trolley"); if (!el || s === null || !state.info) return;
+  const [x, y] = planPositionAt(s);
+  el.setAttribute("cx", x); el.setAttribute("cy", -y); el.setAttribute("visibility", "visible");
+}
+
+// ---- the workpiece: parts, feature points, measuring ----------------------------------------
+
+function showParts(parts) {
+  $("parts-title").textContent = parts.title || "Workpiece";
+  const list = $("parts"); list.replaceChildren();
+  for (const part of parts.parts) {
+    const b = document.createElement("button"); b.type = "button"; b.textContent = part.name;
+    b.addEventListener("click", () => showPart(part)); list.append(b);
+  }
+  const pts = $("points"); pts.replaceChildren();
+  for (const p of parts.feature_points) {
+    const b = document.createElement("button"); b.type = "button"; b.textContent = p.name; b.dataset.point = p.name;
+    b.title = p.notes; b.addEventListener("click", () => pickPoint(p.name)); pts.append(b);
+  }
+  if (!parts.parts.length && !parts.feature_points.length) list.textContent = "No parts sidecar beside the model.";
+}
+
+function showPart(part) {
+  const panel = $("part-panel"); panel.hidden = false; panel.replaceChildren();
+  const h = document.createElement("strong"); h.textContent = part.name;
+  const notes = document.createElement("p"); notes.textContent = part.notes || "";
+  const pts = document.createElement("p");
+  pts.textContent = part.points.length ? `feature points: ${part.points.join(", ")}` : "no feature points";
+  panel.append(h, notes, pts);
+}
+
+function pickPoint(name) {
+  const all = state.info.parts.feature_points; const p = all.find((q) => q.name === name);
+  if (!p) return;
+  state.picked = [...state.picked.filter((n) => n !== name), name].slice(-2);
+  for (const b of $("points").children) b.classList.toggle("picked", state.picked.includes(b.dataset.point));
+  const part = state.info.parts.parts.find((q) => q.points.includes(name));
+  if (part) showPart(part);
+  if (state.picked.length === 2) {
+    const [a, b] = state.picked.map((n) => all.find((q) => q.name === n).position_mm);
+    const d = Math.hypot(a[0] - b[0], a[1] - b[1], a[2] - b[2]);
+    $("measure").textContent = `${state.picked[0]} → ${state.picked[1]}: ${d.toFixed(1)} mm`;
+    state.measuredMm = d;
+  } else {
+    $("measure").textContent = `${name}: ${p.notes || ""} — pick one more point`;
+  }
+}
+
+// ---- little things -------------------------------------------------------------------------
+
+let toastTimer = null;
+function toast(text) {
+  $("toast").textContent = text; clearTimeout(toastTimer);
+  toastTimer = setTimeout(() => { $("toast").textContent = ""; }, 5000);
+}
+
+function showLogin(text) {
+  $("login-msg").textContent = text; $("login").hidden = false;
+}
+
+$("login-form").addEventListener("submit", (ev) => {
+  ev.preventDefault();
+  sessionStorage.setItem("orbitar-token", $("token-input").value);
+  history.replaceState(null, "", location.pathname);
+  $("login").hidden = true; connect();
+});
+
+setInterval(ping, PING_PERIOD_MS);
+connect();
