@@ -42,7 +42,10 @@ class LinkCounters:
     oversize: int = 0
     frames_out: int = 0
     tx_dropped: int = 0
-    duplicates: int = 0
+    duplicates: int = 0  # repeats answered from the reply memory
+    held: int = 0  # commands that arrived ahead of a gap and waited for it
+    stale: int = 0  # NAK STALE_SEQ: behind the sequence and not a remembered repeat
+    unacked_commands: int = 0  # acked-only commands sent without ACK_REQUESTED, ignored
 
 
 class RxFramer:
@@ -154,24 +157,63 @@ class TxQueue:
 
 
 class ReplyCache:
-    """The replies sent to the last few acknowledged commands, keyed by seq and content."""
+    """The replies sent to the last few executed commands, keyed by seq (PROTOCOL.md §6).
+
+    Each entry also keeps the command's id and payload, so a frame that reuses a remembered
+    seq with other content is recognised (and refused) instead of being taken for a repeat.
+    """
 
     __slots__ = ("_entries",)
 
     def __init__(self) -> None:
-        self._entries: deque[tuple[int, bytes, object]] = deque(maxlen=REPLY_CACHE_SIZE)
+        self._entries: dict[int, tuple[bytes, object]] = {}
+
+    def __len__(self) -> int:
+        return len(self._entries)
 
     def clear(self) -> None:
-        """Forget all replies (controller reset)."""
+        """Forget all replies (controller reset, HELLO)."""
         self._entries.clear()
 
-    def lookup(self, seq: int, body: bytes) -> object | None:
-        """The reply already sent for this seq and command, or None if it is new."""
-        for s, b, reply in self._entries:
-            if s == seq and b == body:
-                return reply
-        return None
+    def lookup(self, seq: int) -> tuple[bytes, object] | None:
+        """(command body, reply) remembered for this seq, or None."""
+        return self._entries.get(seq)
 
     def store(self, seq: int, body: bytes, reply: object) -> None:
-        """Remember the reply to a command, evicting the oldest."""
-        self._entries.append((seq, body, reply))
+        """Remember the reply to a command, evicting the oldest beyond REPLY_CACHE_SIZE."""
+        entries = self._entries
+        entries.pop(seq, None)
+        entries[seq] = (body, reply)
+        if len(entries) > REPLY_CACHE_SIZE:
+            del entries[next(iter(entries))]
+
+
+class HoldBuffer:
+    """Acked commands that arrived ahead of a gap in the command sequence, by seq (bounded)."""
+
+    __slots__ = ("_frames",)
+
+    def __init__(self) -> None:
+        self._frames: dict[int, tuple[int, int, bytes]] = {}
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __contains__(self, seq: int) -> bool:
+        return seq in self._frames
+
+    def clear(self) -> None:
+        """Drop every held frame (reset, HELLO)."""
+        self._frames.clear()
+
+    def put(self, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
+        """Hold one frame; a repeat of a held seq keeps the first copy."""
+        self._frames.setdefault(seq, (flags, msg_id, raw))
+
+    def pop(self, seq: int) -> tuple[int, int, bytes] | None:
+        """The frame held for this seq, removed, or None."""
+        return self._frames.pop(seq, None)
+
+    def seqs(self) -> list[int]:
+        """Held seqs, in arrival order."""
+        return list(self._frames)

@@ -43,7 +43,7 @@ from protocol import (
 )
 from protocol.enums import NakCode, State
 from protocol.messages import ClockSync as ClockSyncMsg
-from protocol.messages import ClockSyncReply, Heartbeat, Hello, Identify, Nak
+from protocol.messages import ClockSyncReply, Estop, Heartbeat, Hello, Identify, Nak, Stop
 
 log = logging.getLogger(__name__)
 
@@ -57,6 +57,8 @@ RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
 RTO_BETA = 1 / 4
 RTO_K = 4
+
+_STOPS = (Stop, Estop)
 
 EventHandler = Callable[[LinkEvent, str], None]
 PacketHandler = Callable[[Packet], None]
@@ -176,7 +178,7 @@ class Session:
         self._window = 1  # until IDENTIFY tells us rx_window
         self._cmd_index = 0
         self._slot_waiters: list[asyncio.Future[None]] = []
-        self._probes: dict[int, tuple[int, int]] = {}
+        self._probes: dict[int, int] = {}  # token → host send time, ns
         self._tokens = itertools.count(1)
         self._tasks: list[asyncio.Task[None]] = []
         self._running = False
@@ -255,7 +257,11 @@ class Session:
         spec = spec_of(message)
         if not spec.acked or spec.reply is None:
             raise ValueError(f"{spec.name} is not an acknowledged command")
-        await self._acquire_slot()
+        if type(message) not in _STOPS:
+            # STOP and ESTOP never wait for a window slot; the controller runs them on arrival.
+            await self._acquire_slot()
+        elif not self._running:
+            raise LinkDown("session is not running")
         loop = asyncio.get_running_loop()
         entry = _Pending(self._next_seq(), message, spec.name, spec.reply, loop.create_future())
         entry.index = self._cmd_index
@@ -272,10 +278,14 @@ class Session:
             self._forget(entry)
 
     def send(self, message: object) -> int:
-        """Send an unacknowledged frame (HEARTBEAT, CLOCK_SYNC); returns its seq."""
+        """Send an unacknowledged frame (HEARTBEAT, CLOCK_SYNC); returns its seq.
+
+        Only acked commands spend a seq (the controller runs them in seq order and waits for
+        a gap to fill); an unacked frame carries the seq the next command will take.
+        """
         if not self._running:
             raise LinkDown("session is not running")
-        seq = self._next_seq()
+        seq = self._tx_seq
         self._write(message, seq, Flag.NONE)
         return seq
 
@@ -437,6 +447,11 @@ class Session:
             return
         if isinstance(msg, Nak):
             self.stats.naks += 1
+            if msg.code == NakCode.BUSY:
+                # Ahead of a gap the controller could not hold: the command did not run and the
+                # retransmission timer resends it, same seq, once the gap has filled.
+                self.stats.busy_naks += 1
+                return
             exc = ControllerRejected(
                 entry.name, enum_or_int(NakCode, msg.code), enum_or_int(State, msg.state)
             )
@@ -470,13 +485,13 @@ class Session:
 
     def _on_clock_reply(self, msg: ClockSyncReply) -> None:
         """Pair the reply with its probe and feed the estimator."""
-        probe = self._probes.pop(msg.req_seq, None)
-        if probe is None or probe[1] != msg.token:
+        sent_ns = self._probes.pop(msg.token, None)
+        if sent_ns is None:
             self.stats.duplicate_replies += 1
             return
         self.stats.clock_replies += 1
         t1_ns = self.transport.rx_time_ns or time.monotonic_ns()  # its chunk's arrival (recorded)
-        self.clock.add_probe(probe[0], msg.mcu_time_us, t1_ns, msg.rx_time_us)
+        self.clock.add_probe(sent_ns, msg.mcu_time_us, t1_ns, msg.rx_time_us)
 
     def _emit(self, event: LinkEvent, detail: str) -> None:
         """Tell the owner; logging here so nothing goes unseen."""
@@ -522,7 +537,7 @@ class Session:
             if seq is not None:
                 t0 = self.transport.tx_time_ns or t0  # taken just before the write (recorded)
                 self.stats.clock_probes += 1
-                self._probes[seq] = (t0, token)
+                self._probes[token] = t0
                 while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
                     del self._probes[next(iter(self._probes))]
 

@@ -166,7 +166,7 @@ async def test_unknown_state_in_status_does_not_break_the_snapshot(rig) -> None:
     fake, ctrl, _ = rig
     # A newer firmware's state and fault bit: out of our encoder's range, so built by hand.
     raw = struct.pack("<BBHB", PROTOCOL_VERSION, 0, 1234, SCHEMA.by_cls[Status].id)
-    raw += struct.pack("<IBHBii", 0, 99, 0x4000, 0x10, 1000, 1000)
+    raw += struct.pack("<IBHBiiH", 0, 99, 0x4000, 0x10, 1000, 1000, 0)
     fake.transport.inject(cobs.encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00")
     await asyncio.sleep(0.01)
     snap = ctrl.snapshot()

@@ -20,7 +20,7 @@ from host.transport.base import TransportError
 from host.transport.memory import Impairment
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder, encode_frame
 from protocol.enums import NakCode, State
-from protocol.messages import Ack, ClockSync, ClockSyncReply, ParamSet, Stop
+from protocol.messages import Ack, ClockSync, ClockSyncReply, HeadSet, ParamSet, Stop
 from tests.link.fake_controller import FakeController
 
 FAST = SessionConfig(rto_initial_s=0.02, rto_min_s=0.02, rto_max_s=0.2, max_tries=12)
@@ -180,7 +180,8 @@ async def test_window_is_respected(fake: FakeController) -> None:
     # which the fake would count as one more command in flight.
     session = await start(fake, SessionConfig(rto_initial_s=1.0, rto_min_s=0.5))
     await session.handshake()
-    await asyncio.gather(*(session.request(Stop()) for _ in range(20)))
+    # Not STOP: stops bypass the window (they run on arrival, PROTOCOL §6).
+    await asyncio.gather(*(session.request(HeadSet(0, 0)) for _ in range(20)))
     await session.stop()
     assert fake.max_inflight_seen == 6  # (2 · rx_window + 1) // 2: see Session._window_open
 
