@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from firmware.config import (
+    CAPABILITIES,
     CHAIN_PITCH_UM,
     ENCODER_COUNTS_PER_REV,
     FW_VERSION,
@@ -39,6 +40,7 @@ from protocol import (
     decode_payload,
 )
 from protocol import messages as m
+from protocol.compat import LEGACY_VERSION, decode_handshake
 from protocol.schema import HEADER_SIZE, TEXT
 
 if TYPE_CHECKING:
@@ -70,8 +72,13 @@ _SEQ_MOD = 0x1_0000
 _SEQ_HALF = _SEQ_MOD // 2
 
 
-def handle(fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
+def handle(
+    fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes, version: int = PROTOCOL_VERSION
+) -> None:
     """Act on one checked frame: unacked at once, acked commands in sequence order."""
+    if version != PROTOCOL_VERSION:
+        _foreign_hello(fw, seq, version, raw)
+        return
     # HELLO is always answered, flag or not: it is how any client, of any version, asks.
     acked = bool(flags & Flag.ACK_REQUESTED) or msg_id == _HELLO_ID
     if not acked or (msg_id not in _ACKED_IDS and msg_id in _CHECKS):
@@ -110,6 +117,14 @@ def handle(fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
         fw.held.put(seq, Flag.ACK_REQUESTED, msg_id, raw)
     else:
         fw.tx.send(_nak(fw, seq, NakCode.BUSY), reply=True)  # not held, not remembered
+
+
+def _foreign_hello(fw: Firmware, seq: int, version: int, raw: bytes) -> None:
+    """Another version's HELLO: say who we are, in a framing it reads, and change nothing."""
+    if decode_handshake(_HELLO_ID, raw[HEADER_SIZE:]) is None:
+        return
+    identify = _hello(fw, seq, None)
+    fw.tx.send(identify, reply=True, legacy=version == LEGACY_VERSION)
 
 
 def _handle_hello(fw: Firmware, seq: int, body: bytes, raw: bytes) -> None:
@@ -225,6 +240,7 @@ def _hello(fw: Firmware, seq: int, msg: object) -> Reply:
         MAX_FRAME_BYTES,
         RX_WINDOW,
         fw.state,
+        CAPABILITIES,
     )
 
 

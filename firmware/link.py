@@ -22,12 +22,14 @@ from firmware.config import (
 from protocol import PROTOCOL_VERSION, encode_frame
 from protocol.cobs import CobsError
 from protocol.cobs import decode as cobs_decode
-from protocol.crc import crc16
+from protocol.compat import HANDSHAKE_IDS, LEGACY_VERSION, encode_v1, legacy_frame_ok
+from protocol.crc import FRAME_RESIDUE, crc16
 from protocol.schema import CRC_SIZE, HEADER_FORMAT, HEADER_SIZE
 
 _HEADER = struct.Struct(HEADER_FORMAT)
 _DELIM = b"\x00"
 _MIN_RAW = HEADER_SIZE + CRC_SIZE
+_HELLO_ID = min(HANDSHAKE_IDS)  # 0x01; IDENTIFY (0x80) never comes from the host
 
 
 @dataclass
@@ -63,13 +65,17 @@ class RxFramer:
         self._buf.clear()
         self._discarding = False
 
-    def feed(self, data: bytes) -> list[tuple[int, int, int, bytes]]:
-        """Consume received bytes; return the frames that passed COBS, length, CRC and version."""
+    def feed(self, data: bytes) -> list[tuple[int, int, int, bytes, int]]:
+        """Consume received bytes; the frames that passed COBS, length, CRC and version.
+
+        Each is (seq, flags, msg_id, raw without CRC, version); a version other than ours is
+        only ever a HELLO, kept so that it can be answered (PROTOCOL §7).
+        """
         if _DELIM not in data:
             self._append(data)
             return []
         parts = data.split(_DELIM)
-        out: list[tuple[int, int, int, bytes]] = []
+        out: list[tuple[int, int, int, bytes, int]] = []
         for i, part in enumerate(parts):
             self._append(part)
             if i == len(parts) - 1:
@@ -93,7 +99,7 @@ class RxFramer:
             self._discarding = True
             self._buf.clear()
 
-    def _check(self, enc: bytes) -> tuple[int, int, int, bytes] | None:
+    def _check(self, enc: bytes) -> tuple[int, int, int, bytes, int] | None:
         """One delimited frame → header and raw bytes, or None with the reason counted."""
         c = self.counters
         try:
@@ -104,15 +110,18 @@ class RxFramer:
         if len(raw) < _MIN_RAW:
             c.bad_length += 1
             return None
-        if crc16(raw) != 0:
+        legacy = legacy_frame_ok(raw)
+        if crc16(raw) != FRAME_RESIDUE and not legacy:
             c.bad_crc += 1
             return None
         version, flags, seq, msg_id = _HEADER.unpack_from(raw)
-        if version != PROTOCOL_VERSION:
+        if version != PROTOCOL_VERSION and (
+            msg_id != _HELLO_ID or (version == LEGACY_VERSION and not legacy)
+        ):
             c.bad_version += 1
             return None
         c.frames_in += 1
-        return seq, flags, msg_id, raw[: len(raw) - CRC_SIZE]
+        return seq, flags, msg_id, raw[: len(raw) - CRC_SIZE], version
 
 
 class TxQueue:
@@ -133,8 +142,11 @@ class TxQueue:
         self._frames.clear()
         self.seq = 0
 
-    def send(self, msg: object, reply: bool = False, flags: int = 0) -> bool:
-        """Encode and queue a message; telemetry is dropped (seq still spent) when nearly full."""
+    def send(self, msg: object, reply: bool = False, flags: int = 0, legacy: bool = False) -> bool:
+        """Encode and queue a message; telemetry is dropped (seq still spent) when nearly full.
+
+        `legacy` frames an IDENTIFY as version 1, for a version-1 host's HELLO.
+        """
         seq = self.seq
         self.seq = (seq + 1) & 0xFFFF
         room = TX_QUEUE_FRAMES - len(self._frames)
@@ -142,7 +154,7 @@ class TxQueue:
             # The spent seq leaves a gap, so the host counts the loss.
             self.counters.tx_dropped += 1
             return False
-        self._frames.append(encode_frame(msg, seq, flags))
+        self._frames.append(encode_v1(msg, seq, flags) if legacy else encode_frame(msg, seq, flags))
         return True
 
     def drain(self) -> bytes:

@@ -52,6 +52,7 @@ U32_MOD = 1 << 32
 # A frame with a tiny seq far from the expected one: the controller's counter restarted.
 SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
+HOST_CAPABILITIES = 0  # Capability bits this host offers in HELLO (none yet)
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
 RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
@@ -173,6 +174,9 @@ class Session:
         # A random first seq: a restarted host is unlikely to repeat its predecessor's seqs
         # even towards a controller that kept its reply cache (PROTOCOL.md §6).
         self._tx_seq = random.randrange(SEQ_MOD)
+        # Names this session in HELLO: the controller tells a repeated HELLO from a new host's.
+        self._session_id = random.randrange(U32_MOD)
+        self.capabilities = 0
         self._rx_seq = _RxSeq()
         self._inflight: dict[int, _Pending] = {}
         self._window = 1  # until IDENTIFY tells us rx_window
@@ -230,7 +234,7 @@ class Session:
     async def handshake(self) -> tuple[Identify, bool]:
         """HELLO → IDENTIFY; returns it and whether the boot id changed (controller reset)."""
         self._window = 1
-        hello = Hello(protocol_version=PROTOCOL_VERSION, schema_hash=SCHEMA_HASH)
+        hello = Hello(PROTOCOL_VERSION, SCHEMA_HASH, HOST_CAPABILITIES, self._session_id)
         packet = await self.request(hello, max_tries=self.config.handshake_tries)
         ident = packet.message
         assert isinstance(ident, Identify)
@@ -245,6 +249,8 @@ class Session:
         if rebooted:
             self.stats.controller_resets += 1
         self.identity = ident
+        # A feature is used only when both sides offer it (issue 16 negotiates with these bits).
+        self.capabilities = HOST_CAPABILITIES & ident.capabilities
         cache = self.config.reply_cache_factor * ident.rx_window
         self._window = max(1, min(ident.rx_window, (cache + 1) // 2))
         self._peer_uptime_ms = None

@@ -8,9 +8,9 @@ import pytest
 
 from firmware import config
 from hil_sim.client import FrameClient
-from protocol import SCHEMA_HASH, Flag, NakCode, ParamId, State, encode_frame
+from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Flag, NakCode, ParamId, State, encode_frame
 from protocol.cobs import encode as cobs_encode
-from protocol.crc import crc16
+from protocol.crc import frame_crc
 from protocol.messages import (
     Ack,
     ClearFault,
@@ -34,8 +34,8 @@ from tests.firmware.conftest import Rig
 
 def raw_frame(msg_id: int, payload: bytes, seq: int, flags: int = Flag.ACK_REQUESTED) -> bytes:
     """A well-framed frame with any id and payload (the codec would refuse to build some)."""
-    raw = struct.pack("<BBHB", 1, flags, seq, msg_id) + payload
-    return cobs_encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00"
+    raw = struct.pack("<BBHB", PROTOCOL_VERSION, flags, seq, msg_id) + payload
+    return cobs_encode(raw + frame_crc(raw).to_bytes(2, "big")) + b"\x00"
 
 
 def take_seq(client: FrameClient) -> int:
