@@ -84,6 +84,7 @@ class FrameDecoder:
     drops: DropCounters = field(default_factory=DropCounters)
     frames_ok: int = 0
     bytes_in: int = 0
+    last_unknown_id: int | None = None  # the id of the last frame dropped as unknown_id
     _buf: bytearray = field(default_factory=bytearray)
     _discarding: bool = False
 
@@ -146,6 +147,7 @@ class FrameDecoder:
         decode = RAW_DECODERS.get(msg_id)
         if decode is None:
             self.drops.unknown_id += 1
+            self.last_unknown_id = msg_id
             return None
         try:
             msg = decode(raw)

@@ -30,6 +30,8 @@ from host.link.common import (
     LinkEvent,
     LinkStats,
     ProtocolMismatch,
+    decode_enum,
+    note_unknown,
 )
 from host.transport.base import Transport, TransportError
 from protocol import (
@@ -60,6 +62,7 @@ RTO_BETA = 1 / 4
 RTO_K = 4
 
 _STOPS = (Stop, Estop)
+_KNOWN_FLAGS = int(Flag.ACK_REQUESTED | Flag.RETRANSMIT)
 
 EventHandler = Callable[[LinkEvent, str], None]
 PacketHandler = Callable[[Packet], None]
@@ -425,12 +428,17 @@ class Session:
     def _on_bytes(self, data: bytes) -> None:
         """Transport receiver: decode and dispatch every complete frame."""
         self.stats.bytes_in += len(data)
+        unknown_ids = self._decoder.drops.unknown_id
         for packet in self._decoder.feed(data):
             self.stats.frames_in += 1
+            if packet.flags & ~_KNOWN_FLAGS:
+                note_unknown("header flag bits", packet.flags & ~_KNOWN_FLAGS)
             if self._rx_seq.see(packet.seq, self.stats):
                 self._emit(LinkEvent.RESET_SUSPECTED, f"controller seq restarted at {packet.seq}")
             self._last_rx_s = asyncio.get_running_loop().time()
             self._dispatch(packet)
+        if self._decoder.drops.unknown_id != unknown_ids:
+            note_unknown("message id", self._decoder.last_unknown_id or 0)
 
     def _dispatch(self, packet: Packet) -> None:
         """Route one packet: replies to their requests, the rest to the owner."""
@@ -458,10 +466,9 @@ class Session:
                 # retransmission timer resends it, same seq, once the gap has filled.
                 self.stats.busy_naks += 1
                 return
-            exc = ControllerRejected(
-                entry.name, enum_or_int(NakCode, msg.code), enum_or_int(State, msg.state)
-            )
-            entry.future.set_exception(exc)
+            code, state = decode_enum(NakCode, msg.code), decode_enum(State, msg.state)
+            # Failed at once, whatever the code: a newer controller's refusal is still a refusal.
+            entry.future.set_exception(ControllerRejected(entry.name, code, state))
             if msg.code == NakCode.HELLO_REQUIRED:
                 # The controller rebooted since our HELLO: the supervisor re-handshakes.
                 self._emit(LinkEvent.RESET_SUSPECTED, "controller asks for HELLO (it rebooted)")
@@ -569,11 +576,3 @@ def _check_identity(ident: Identify) -> None:
     bad = [name for name in _IDENTITY_POSITIVE if getattr(ident, name) <= 0]
     if bad:
         raise BadIdentity(f"IDENTIFY has non-positive {', '.join(bad)}: controller misconfigured")
-
-
-def enum_or_int(kind: Any, value: int) -> Any:
-    """Wire integer → enum member; an unknown value stays an int rather than crashing."""
-    try:
-        return kind(value)
-    except ValueError:
-        return value
