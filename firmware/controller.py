@@ -138,7 +138,7 @@ class Firmware:
             self.tx.send(self._status(), reply=True)
         if self.ticks - self._last_tx_tick >= HEARTBEAT_IDLE_TICKS:
             self.tx.send(Heartbeat(self.ticks & 0xFFFF_FFFF))
-        out = self.tx.drain()
+        out = self.tx.drain(self.hal.link_tx_room())
         if out:
             self.hal.link_write(out)
             self._last_tx_tick = self.ticks

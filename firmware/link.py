@@ -125,13 +125,18 @@ class RxFramer:
 
 
 class TxQueue:
-    """Outgoing frames, bounded in count; each frame gets the next u16 seq of this direction."""
+    """Outgoing frames, bounded in count; each frame gets the next u16 seq of this direction.
+
+    When the link carries less than the streams produce, frames wait here; once the queue is
+    full the oldest waiting telemetry is dropped (its seq spent, so the host counts the loss),
+    never a reply: replies and event STATUS always find a slot (PROTOCOL §14, R-STREAM-1).
+    """
 
     __slots__ = ("_frames", "counters", "seq")
 
     def __init__(self, counters: LinkCounters) -> None:
         self.counters = counters
-        self._frames: deque[bytes] = deque()
+        self._frames: deque[tuple[bytes, bool]] = deque()  # (wire bytes, is a reply)
         self.seq = 0
 
     def __len__(self) -> int:
@@ -143,29 +148,40 @@ class TxQueue:
         self.seq = 0
 
     def send(self, msg: object, reply: bool = False, flags: int = 0, legacy: bool = False) -> bool:
-        """Encode and queue a message; telemetry is dropped (seq still spent) when nearly full.
+        """Encode and queue a message; False if it was telemetry dropped for room.
 
         `legacy` frames an IDENTIFY as version 1, for a version-1 host's HELLO.
         """
         seq = self.seq
         self.seq = (seq + 1) & 0xFFFF
-        room = TX_QUEUE_FRAMES - len(self._frames)
-        if room <= 0 or (not reply and room <= TX_REPLY_RESERVE_FRAMES):
-            # The spent seq leaves a gap, so the host counts the loss.
-            self.counters.tx_dropped += 1
+        limit = TX_QUEUE_FRAMES if reply else TX_QUEUE_FRAMES - TX_REPLY_RESERVE_FRAMES
+        if len(self._frames) >= limit and not self._drop_oldest_telemetry() and not reply:
+            self.counters.tx_dropped += 1  # nothing older to drop: this one goes
             return False
-        self._frames.append(encode_v1(msg, seq, flags) if legacy else encode_frame(msg, seq, flags))
+        wire = encode_v1(msg, seq, flags) if legacy else encode_frame(msg, seq, flags)
+        self._frames.append((wire, reply))
         return True
 
-    def drain(self) -> bytes:
-        """Everything queued, as one byte string for the link."""
+    def drain(self, room: int) -> bytes:
+        """The queued frames that fit in `room` bytes, oldest first, as one byte string."""
         frames = self._frames
-        if not frames:
-            return b""
-        self.counters.frames_out += len(frames)
-        data = b"".join(frames)
-        frames.clear()
-        return data
+        out: list[bytes] = []
+        used = 0
+        while frames and used + len(frames[0][0]) <= room:
+            wire, _ = frames.popleft()
+            out.append(wire)
+            used += len(wire)
+        self.counters.frames_out += len(out)
+        return b"".join(out)
+
+    def _drop_oldest_telemetry(self) -> bool:
+        """Remove the oldest queued telemetry frame; False if every queued frame is a reply."""
+        for i, (_, is_reply) in enumerate(self._frames):
+            if not is_reply:
+                del self._frames[i]
+                self.counters.tx_dropped += 1
+                return True
+        return False
 
 
 class ReplyCache:
