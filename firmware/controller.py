@@ -94,6 +94,7 @@ class Firmware:
     homing_phase: HomingPhase
     homing_speed: int
     homing_origin: int
+    switch_steps: int | None  # where the home switch closed during the last homing (homed frame)
     stream_rates: list[int]
     stream_acc: list[int]
     active_streams: list[int]
@@ -213,14 +214,20 @@ class Firmware:
 
     def start_homing(self, speed_um_s: int) -> None:
         """Begin homing: seek the home switch in the negative direction."""
+        # On the switch, or homed and behind it (the index lies past the switch, so a homed
+        # trolley usually is): back off past it first, so the switch is always met from the
+        # positive side and the index latched is the same one (PROTOCOL §10, R-HOME-2).
+        on_switch = bool(self.switches & _IN_HOME)
+        behind = self.homed and self.switch_steps is not None
+        behind = behind and self.profile.steps <= (self.switch_steps or 0)
+        if not behind:
+            self.switch_steps = None  # unhomed: where the switch is, is not known
         self.set_homed(False)
         self.homing_speed = speed_um_s or self.params.get(ParamId.HOME_SPEED_UM_S)
         self.homing_origin = self.profile.steps
-        # Started on the switch: back off it first, so the switch is always met from the same
-        # side and the index latched is the same one (PROTOCOL §10, R-HOME-2).
-        on_switch = bool(self.switches & _IN_HOME)
-        self.homing_phase = HomingPhase.BACKOFF if on_switch else HomingPhase.SEEK
-        sign = 1 if on_switch else -1
+        back_off = on_switch or behind
+        self.homing_phase = HomingPhase.BACKOFF if back_off else HomingPhase.SEEK
+        sign = 1 if back_off else -1
         self.profile.jog(sign * commands.speed(self.homing_speed), self.max_accel, self.stop_decel)
         self.state = State.HOMING
 
@@ -274,6 +281,7 @@ class Firmware:
         self.homing_phase = HomingPhase.SEEK
         self.homing_speed = 0
         self.homing_origin = 0
+        self.switch_steps = None
         self.stream_rates = [0] * _N_STREAMS
         self.stream_acc = [0] * _N_STREAMS
         self.active_streams = []
@@ -366,13 +374,15 @@ class Firmware:
             self.latch_fault(Fault.HOMING_FAILED, halt=False)
             return
         if phase is HomingPhase.BACKOFF:
-            if not self.switches & _IN_HOME:
+            past = self.switch_steps is None or self.profile.steps > self.switch_steps
+            if not self.switches & _IN_HOME and past:
                 self.homing_phase = HomingPhase.SEEK
                 seek = -commands.speed(self.homing_speed)
                 self.profile.jog(seek, self.max_accel, self.stop_decel)
         elif phase is HomingPhase.SEEK:
             if self.switches & _IN_HOME:
                 self.homing_phase = HomingPhase.INDEX
+                self.switch_steps = self.profile.steps
         elif self.index_latch is not None:
             self._latch_home(self.index_latch)
 
@@ -380,7 +390,10 @@ class Firmware:
         """Make the index pulse's position HOME_OFFSET_UM and return onto it."""
         offset_um = self.params.get(ParamId.HOME_OFFSET_UM)
         self.enc_pos += um_to_counts(offset_um) - index_pos
-        self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+        shift = counts_to_steps(self.enc_pos) - self.profile.steps
+        self.profile.shift(shift)
+        if self.switch_steps is not None:
+            self.switch_steps += shift  # into the new frame, for the next HOME's back-off
         self.set_homed(True)
         self.homing_phase = HomingPhase.RETURN
         self.profile.move_to(

@@ -7,6 +7,7 @@ from protocol import Flag, NakCode, ParamId, State
 from protocol.messages import (
     Ack,
     Heartbeat,
+    Home,
     Jog,
     MoveTo,
     Nak,
@@ -129,3 +130,34 @@ def test_param_writes_while_moving_are_bad_state(homed: Rig) -> None:
         assert isinstance(reply, Nak)
         assert (reply.code, reply.state) == (NakCode.BAD_STATE, State.MOVING)
     assert homed.sim.firmware.params.get(ParamId.MAX_SPEED_UM_S) != 90_000
+
+
+def test_home_again_from_the_homed_position_backs_off_past_the_switch(homed: Rig) -> None:
+    # The index lies past the switch, so a homed trolley sits behind it: seeking straight in
+    # the negative direction would run to LIMIT_MIN (issue 13). It backs off first (R-HOME-2).
+    c, fw = homed.client, homed.sim.firmware
+    first_switch = fw.switch_steps
+    assert first_switch is not None
+    assert fw.profile.steps <= first_switch, "the rig's index is behind its switch"
+    assert isinstance(c.request(Home(0)), Ack)
+    velocities = []
+    for _ in range(400):
+        c.run(100)
+        velocities.append(fw.profile.vel)
+        if fw.state is not State.HOMING:
+            break
+    assert fw.state is State.READY, fw.faults
+    assert next(v for v in velocities if v) > 0, "the first motion is the back-off, positive"
+    assert abs(homed.sim.firmware.position_um) < 2_000
+
+
+def test_stop_during_homing_decelerates_as_moving_then_idle_unhomed(rig: Rig) -> None:
+    c, fw = rig.client, rig.sim.firmware
+    assert isinstance(c.request(Home(0)), Ack)
+    c.run(300)
+    reply = c.request(Stop())
+    assert isinstance(reply, Ack)
+    assert reply.state in (State.MOVING, State.IDLE)
+    c.run(1000)
+    assert fw.state is State.IDLE
+    assert not fw.homed
