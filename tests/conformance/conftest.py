@@ -29,6 +29,7 @@ async def mirror_over(kind: str, tmp: Path) -> AsyncIterator[tuple[RealtimeRunne
     runner.sim.board.link_tx_bytes_s = uart_rate_bytes_s(UART_BAUD)
     endpoint = SimPortEndpoint(runner.port, asyncio.get_running_loop())
     transport: Transport
+    emulator: PtyUart | XBeeModule | VirtualCanNode
     if kind == "serial":
         emulator = PtyUart(endpoint, UART_BAUD, link_path=str(tmp / "ttyORB"))
         await emulator.start()
