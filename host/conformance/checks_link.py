@@ -44,6 +44,7 @@ SILENCE_S = 0.15  # how long "no reply" is waited for
 UNKNOWN_ID = 0x7E
 ACKED = Flag.ACK_REQUESTED
 TEST_PARAM = ParamId.HOME_SPEED_UM_S
+CHUNK_BYTES = 64
 
 
 async def _value(ctx: Context) -> int:
@@ -57,7 +58,9 @@ async def _value(ctx: Context) -> int:
 @check("idle fill and oversize frames are harmless", "R-FRAME-1", "R-FRAME-3")
 async def idle_and_oversize(ctx: Context) -> None:
     await ctx.fresh()
-    ctx.client.send_raw(b"\x00" * 8 + bytes(range(1, 201)) + b"\x00\x00")
+    oversize = b"\x00" * 8 + bytes(range(1, 201)) + b"\x00\x00"
+    for i in range(0, len(oversize), CHUNK_BYTES):  # datagram links carry at most one frame
+        ctx.client.send_raw(oversize[i : i + CHUNK_BYTES])
     reply = await ctx.client.request(ParamGet(int(TEST_PARAM)))
     expect(isinstance(reply, ParamValue), f"after idle fill and an oversize frame: {reply!r}")
 
@@ -366,15 +369,18 @@ async def seq_and_heartbeat(ctx: Context) -> None:
 async def back_pressure(ctx: Context) -> None:
     await ctx.fresh()
     c = ctx.client
-    for stream in Stream:
-        expect_ack(await c.request(StreamSet(int(stream), 1000)), f"STREAM_SET {stream.name}")
-    await asyncio.sleep(0.5)  # let any queue fill
-    worst = 0.0
-    for _ in range(10):
-        t0 = time.monotonic()
-        reply = await c.request(ParamGet(1), timeout_s=2.0)
-        worst = max(worst, time.monotonic() - t0)
-        expect(isinstance(reply, ParamValue), f"reply under load: {reply!r}")
-    for stream in Stream:
-        await c.request(StreamSet(int(stream), 0))
+    try:
+        for stream in Stream:
+            reply = await c.request(StreamSet(int(stream), 1000))
+            expect_ack(reply, f"STREAM_SET {stream.name}")
+        await asyncio.sleep(0.5)  # let any queue fill
+        worst = 0.0
+        for _ in range(10):
+            t0 = time.monotonic()
+            reply = await c.request(ParamGet(1), timeout_s=2.0)
+            worst = max(worst, time.monotonic() - t0)
+            expect(isinstance(reply, ParamValue), f"reply under load: {reply!r}")
+    finally:
+        for stream in Stream:
+            await c.request(StreamSet(int(stream), 0), timeout_s=2.0)
     expect(worst < 0.5, f"a reply waited {worst:.2f} s behind telemetry")

@@ -18,6 +18,7 @@ from host.conformance.base import (
 )
 from protocol import Fault, Inputs, NakCode, ParamId, State, Stream
 from protocol.messages import (
+    Ack,
     ClearFault,
     EncoderSample,
     Estop,
@@ -36,6 +37,7 @@ from protocol.messages import (
 OK = None  # an accepted cell
 BS, NH = NakCode.BAD_STATE, NakCode.NOT_HOMED
 MOVE_UM = 40_000
+MOVING_CPS = 300  # encoder counts/s that are motion, not a settling trolley
 MOVE_SPEED_UM_S = 100_000
 # PROTOCOL.md §10, the cells a probe can test without leaving the state (no-ops and refusals).
 # The accepted cells that change the state are checked by the flows further down.
@@ -183,7 +185,8 @@ async def homing(ctx: Context) -> None:
     mark = c.mark()
     await ctx.home()
     await c.request(StreamSet(int(Stream.ENCODER), 0))
-    moving = [s for s in c.since(mark, EncoderSample) if abs(s.velocity_counts_s) > 50]
+    acked = next(i for i, r in enumerate(c.received) if i >= mark and isinstance(r.message, Ack))
+    moving = [s for s in c.since(acked, EncoderSample) if abs(s.velocity_counts_s) > MOVING_CPS]
     expect(bool(moving), "no motion seen while homing again")
     expect(moving[0].velocity_counts_s > 0, "homing again from behind the switch went negative")
     second = await _status_now(ctx)

@@ -373,12 +373,12 @@ class Session:
     def _window_open(self) -> bool:
         """A sliding window over commands, not a count.
 
-        The controller remembers the replies of its last rx_window executed commands. A pending
-        command X must still be in that cache when its retransmission arrives, or it runs twice.
-        After X executes, the controller may execute the older commands still pending when X
-        was sent and every newer one: at most 2·(span − 1) of them, so with a cache of
-        factor × rx_window the span of first sends is held to (factor·rx_window + 1) // 2,
-        never above rx_window.
+        PROTOCOL.md §6: at most rx_window consecutive seqs from the oldest unanswered command
+        to the newest, so the controller can hold everything ahead of a lost command (never
+        BUSY). The controller runs commands in seq order, so after X ran it has run at most
+        span − 1 newer ones before X's retransmission arrives; a duplicate memory of
+        factor × rx_window (≥ 2 × rx_window by the spec) always still holds X's reply. The span
+        is also kept to (factor·rx_window + 1) // 2 so a smaller declared memory stays safe.
         """
         if not self._inflight:
             return True

@@ -18,6 +18,9 @@ from hil_sim.scenario import Scenario
 from host.transport import Transport, create_transport
 
 UART_BAUD = 115200
+# What the controller's UART can hand on: the line rate, or for an XBee what the module's air
+# carries (the module holds CTS off when its buffer fills; 4.4 kB/s of air, 18 B per packet).
+XBEE_THROUGHPUT_BYTES_S = 2_000.0
 FAST_HOME_UM_S = 200_000  # the mirror's rig homes in about a second at this speed
 
 
@@ -25,8 +28,9 @@ FAST_HOME_UM_S = 200_000  # the mirror's rig homes in about a second at this spe
 async def mirror_over(kind: str, tmp: Path) -> AsyncIterator[tuple[RealtimeRunner, Transport]]:
     """The mirror behind a pty UART ("serial"), an XBee pair ("xbee") or a CAN node ("can")."""
     runner = RealtimeRunner(Simulation(Scenario(seed=11)))
-    # The board's UART carries no more than its baud rate: the firmware must shed telemetry.
-    runner.sim.board.link_tx_bytes_s = uart_rate_bytes_s(UART_BAUD)
+    # The board's link carries no more than this: the firmware must shed telemetry.
+    rate = XBEE_THROUGHPUT_BYTES_S if kind == "xbee" else uart_rate_bytes_s(UART_BAUD)
+    runner.sim.board.link_tx_bytes_s = rate
     endpoint = SimPortEndpoint(runner.port, asyncio.get_running_loop())
     transport: Transport
     emulator: PtyUart | XBeeModule | VirtualCanNode
