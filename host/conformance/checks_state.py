@@ -16,6 +16,7 @@ from host.conformance.base import (
     expect_ack,
     expect_nak,
 )
+from host.conformance.wire import Received
 from protocol import Fault, Inputs, NakCode, ParamId, State, Stream
 from protocol.messages import (
     Ack,
@@ -38,6 +39,7 @@ OK = None  # an accepted cell
 BS, NH = NakCode.BAD_STATE, NakCode.NOT_HOMED
 MOVE_UM = 40_000
 MOVING_CPS = 300  # encoder counts/s that are motion, not a settling trolley
+SETTLE_S = 3.0
 MOVE_SPEED_UM_S = 100_000
 # PROTOCOL.md §10, the cells a probe can test without leaving the state (no-ops and refusals).
 # The accepted cells that change the state are checked by the flows further down.
@@ -182,6 +184,8 @@ async def homing(ctx: Context) -> None:
     expect(abs(first.target_um - offset) < 100, f"homed to {first.target_um} µm, not {offset}")
     # Homed, the trolley sits on the index, behind the switch: HOME again must back off first.
     expect_ack(await c.request(StreamSet(int(Stream.ENCODER), 200)), "STREAM_SET")
+    # READY means the commanded profile ended; let the trolley itself come to rest.
+    await c.wait_for(_at_rest, SETTLE_S, c.mark(), raise_on_timeout=False)
     mark = c.mark()
     await ctx.home()
     await c.request(StreamSet(int(Stream.ENCODER), 0))
@@ -191,6 +195,12 @@ async def homing(ctx: Context) -> None:
     expect(moving[0].velocity_counts_s > 0, "homing again from behind the switch went negative")
     second = await _status_now(ctx)
     expect(abs(second.target_um - offset) < 100, f"homed again to {second.target_um} µm")
+
+
+def _at_rest(r: Received) -> bool:
+    """An ENCODER_SAMPLE of a trolley standing still."""
+    msg = r.message
+    return isinstance(msg, EncoderSample) and abs(msg.velocity_counts_s) < MOVING_CPS // 3
 
 
 async def _status_now(ctx: Context) -> Status:

@@ -20,7 +20,7 @@ from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Flag, FrameDecoder, Packet, 
 from protocol.messages import ClockSyncReply, Heartbeat, Hello, Identify, Status
 
 SEQ_MOD = 1 << 16
-HEARTBEAT_INTERVAL_S = 0.02  # well inside the shortest watchdog the suite sets (100 ms)
+HEARTBEAT_INTERVAL_S = 0.04  # inside the shortest watchdog the suite sets (100 ms), light on radio
 REPLY_TIMEOUT_S = 0.4
 REPLY_TRIES = 4
 MessageT = TypeVar("MessageT")

@@ -18,9 +18,10 @@ from hil_sim.scenario import Scenario
 from host.transport import Transport, create_transport
 
 UART_BAUD = 115200
-# What the controller's UART can hand on: the line rate, or for an XBee what the module's air
-# carries (the module holds CTS off when its buffer fills; 4.4 kB/s of air, 18 B per packet).
-XBEE_THROUGHPUT_BYTES_S = 2_000.0
+# What the controller's link takes: the UART's line rate, or for an XBee what the module hands
+# on (it holds CTS off when its buffer fills): 4.4 kB/s of air shared by both directions, 18 B
+# of overhead per packet, and the host's heartbeats take their share.
+XBEE_THROUGHPUT_BYTES_S = 1_000.0
 FAST_HOME_UM_S = 200_000  # the mirror's rig homes in about a second at this speed
 
 
