@@ -94,7 +94,7 @@ class Firmware:
     homing_phase: HomingPhase
     homing_speed: int
     homing_origin: int
-    switch_steps: int | None  # where the home switch closed during the last homing (homed frame)
+    switch_counts: int | None  # encoder position where the home switch closed when last homed
     stream_rates: list[int]
     stream_acc: list[int]
     active_streams: list[int]
@@ -217,11 +217,10 @@ class Firmware:
         # On the switch, or homed and behind it (the index lies past the switch, so a homed
         # trolley usually is): back off past it first, so the switch is always met from the
         # positive side and the index latched is the same one (PROTOCOL §10, R-HOME-2).
+        # The encoder keeps counting through faults and CLEAR_FAULT, so where the switch was
+        # stays known until a reboot even when the reference is no longer trusted.
         on_switch = bool(self.switches & _IN_HOME)
-        behind = self.homed and self.switch_steps is not None
-        behind = behind and self.profile.steps <= (self.switch_steps or 0)
-        if not behind:
-            self.switch_steps = None  # unhomed: where the switch is, is not known
+        behind = self.switch_counts is not None and self.enc_pos <= self.switch_counts
         self.set_homed(False)
         self.homing_speed = speed_um_s or self.params.get(ParamId.HOME_SPEED_UM_S)
         self.homing_origin = self.profile.steps
@@ -281,7 +280,7 @@ class Firmware:
         self.homing_phase = HomingPhase.SEEK
         self.homing_speed = 0
         self.homing_origin = 0
-        self.switch_steps = None
+        self.switch_counts = None
         self.stream_rates = [0] * _N_STREAMS
         self.stream_acc = [0] * _N_STREAMS
         self.active_streams = []
@@ -374,7 +373,7 @@ class Firmware:
             self.latch_fault(Fault.HOMING_FAILED, halt=False)
             return
         if phase is HomingPhase.BACKOFF:
-            past = self.switch_steps is None or self.profile.steps > self.switch_steps
+            past = self.switch_counts is None or self.enc_pos > self.switch_counts
             if not self.switches & _IN_HOME and past:
                 self.homing_phase = HomingPhase.SEEK
                 seek = -commands.speed(self.homing_speed)
@@ -382,18 +381,18 @@ class Firmware:
         elif phase is HomingPhase.SEEK:
             if self.switches & _IN_HOME:
                 self.homing_phase = HomingPhase.INDEX
-                self.switch_steps = self.profile.steps
+                self.switch_counts = self.enc_pos
         elif self.index_latch is not None:
             self._latch_home(self.index_latch)
 
     def _latch_home(self, index_pos: int) -> None:
         """Make the index pulse's position HOME_OFFSET_UM and return onto it."""
         offset_um = self.params.get(ParamId.HOME_OFFSET_UM)
-        self.enc_pos += um_to_counts(offset_um) - index_pos
-        shift = counts_to_steps(self.enc_pos) - self.profile.steps
-        self.profile.shift(shift)
-        if self.switch_steps is not None:
-            self.switch_steps += shift  # into the new frame, for the next HOME's back-off
+        delta = um_to_counts(offset_um) - index_pos
+        self.enc_pos += delta
+        self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+        if self.switch_counts is not None:
+            self.switch_counts += delta  # into the new frame, for the next HOME's back-off
         self.set_homed(True)
         self.homing_phase = HomingPhase.RETURN
         self.profile.move_to(

@@ -136,9 +136,9 @@ def test_home_again_from_the_homed_position_backs_off_past_the_switch(homed: Rig
     # The index lies past the switch, so a homed trolley sits behind it: seeking straight in
     # the negative direction would run to LIMIT_MIN (issue 13). It backs off first (R-HOME-2).
     c, fw = homed.client, homed.sim.firmware
-    first_switch = fw.switch_steps
+    first_switch = fw.switch_counts
     assert first_switch is not None
-    assert fw.profile.steps <= first_switch, "the rig's index is behind its switch"
+    assert fw.enc_pos <= first_switch, "the rig's index is behind its switch"
     assert isinstance(c.request(Home(0)), Ack)
     velocities = []
     for _ in range(400):
