@@ -58,6 +58,9 @@ COMMANDS: dict[str, Command] = {
     "fleet": Command(
         "host.bus.fleet", "add_parser", "list the rigs on the bus and their state, live"
     ),
+    "conformance": Command(
+        "host.conformance.run", "add_parser", "check a controller against PROTOCOL.md over its wire"
+    ),
 }
 
 
