@@ -4,7 +4,9 @@
 emulator as `python -m hil_sim` and writes the plant's true position to T every 50 ms, so a test
 can see whether the trolley moved without asking the host. Lines on stdin inject controller
 frames behind the firmware's back: `status N STATE FAULTS` sends N STATUS frames, `log N` N LOG
-frames, `encoder N` N encoder samples, as a misbehaving controller would.
+frames, `encoder N [COUNT VELOCITY MCU_US]` N encoder samples, `head N PAN TILT` N head
+samples (µrad), as a misbehaving controller would; `mute S both|to_host|to_firmware` drops
+the link's bytes for S seconds, as a pulled cable does.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ import os
 import struct
 import sys
 import threading
+import time
 
 from hil_sim.cli import (
     add_arguments,
@@ -29,7 +32,7 @@ from hil_sim.runner import RealtimeRunner
 from protocol import PROTOCOL_VERSION, cobs, encode_frame
 from protocol.codec import spec_of
 from protocol.crc import crc16
-from protocol.messages import EncoderSample, Log, Status
+from protocol.messages import EncoderSample, HeadSample, Log, Status
 from protocol.schema import HEADER_FORMAT
 
 TRUTH_PERIOD_S = 0.05
@@ -58,8 +61,11 @@ def frames(command: str) -> list[bytes]:
             continue
         if kind == "log":
             message: object = Log(2, f"flood {i} " + "x" * 40)
-        else:
-            message = EncoderSample(i * 1000, 0, 0, 0, 0)
+        elif kind == "encoder":  # encoder N [COUNT VELOCITY MCU_US]
+            count, velocity, mcu_us = (int(w) for w in (words[2:5] if len(words) > 4 else "000"))
+            message = EncoderSample(mcu_us + i * 1000, count, count, velocity, 0)
+        else:  # head N PAN_URAD TILT_URAD
+            message = HeadSample(i * 1000, int(words[2]), int(words[3]))
         out.append(encode_frame(message, seq))
     return out
 
@@ -72,10 +78,43 @@ def raw_status(seq: int, mcu_us: int, state: int, faults: int) -> bytes:
     return cobs.encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00"
 
 
+class Mute:
+    """Drops the link's bytes in one or both directions until a deadline (a cable pulled)."""
+
+    def __init__(self, runner: RealtimeRunner) -> None:
+        self.to_host_until = self.to_firmware_until = 0.0
+        port = runner.port
+        deliver, write = port.deliver, port.write_to_firmware
+
+        def muted_deliver(data: bytes) -> None:
+            if time.monotonic() >= self.to_host_until:
+                deliver(data)
+
+        def muted_write(data: bytes) -> None:
+            if time.monotonic() >= self.to_firmware_until:
+                write(data)
+
+        port.deliver = muted_deliver  # type: ignore[method-assign]
+        port.write_to_firmware = muted_write  # type: ignore[method-assign]
+
+    def apply(self, words: list[str]) -> None:
+        """`mute SECONDS both|to_host|to_firmware`."""
+        until = time.monotonic() + float(words[1])
+        if words[2] in ("both", "to_host"):
+            self.to_host_until = until
+        if words[2] in ("both", "to_firmware"):
+            self.to_firmware_until = until
+
+
 def inject(runner: RealtimeRunner, stop: threading.Event) -> None:
     """Read injection commands from stdin and hand their frames to the link."""
+    mute = Mute(runner)
     for line in sys.stdin:
         if stop.is_set() or not line.strip():
+            continue
+        if line.startswith("mute"):
+            mute.apply(line.split())
+            say(sys.stdout, f"injected {line.strip()}")
             continue
         try:
             for frame in frames(line):

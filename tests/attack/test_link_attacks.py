@@ -1,0 +1,69 @@
+"""Attacks from the controller's side of the link on the real daemon (issue 14, tester's run).
+
+The emulator (tests.attack.rogue_sim) drops the link's bytes as a pulled cable does, and its
+plant's true position shows what the trolley really did.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from tests.attack.rig import Rig
+
+HOME_SPEED_UM_S = 150_000
+
+
+@pytest.fixture
+def rig(tmp_path: Path) -> Iterator[Rig]:
+    rig = Rig(tmp_path)
+    rig.start_sim()
+    try:
+        rig.start_daemon()
+        rig.wait_link_up()
+        yield rig
+    finally:
+        rig.stop()
+
+
+def home(rig: Rig) -> None:
+    """Home quickly and wait until READY."""
+    assert rig.request("param_set", param="HOME_SPEED_UM_S", value=HOME_SPEED_UM_S)["ok"]
+    assert rig.request("home")["ok"]
+    deadline = time.monotonic() + 20.0
+    while time.monotonic() < deadline:
+        state = rig.request("status")["result"]["controller"]
+        if state.get("homed") and state["state"] == "READY":
+            return
+        time.sleep(0.2)
+    raise AssertionError(f"not homed: {state}")
+
+
+def test_a_move_whose_ack_is_lost_says_it_may_be_running(rig: Rig) -> None:
+    # On main the operator got "failed: LinkDown: heartbeat timeout" while the trolley drove on
+    # to the target: nothing said the command had reached the controller.
+    home(rig)
+    start_mm = rig.truth_s_mm()
+    rig.inject("mute 3 to_host")  # the controller hears us; we hear nothing
+    reply: dict[str, Any] = {}
+
+    def move() -> None:
+        reply.update(rig.request("move", timeout_s=20.0, position_mm=200.0, speed_mm_s=200.0))
+
+    thread = threading.Thread(target=move)
+    thread.start()
+    thread.join(25.0)
+    assert abs(rig.truth_s_mm() - start_mm) > 100.0  # the trolley did move
+    assert reply["ok"] is False
+    error = reply["error"]
+    assert error["code"] == "failed"
+    assert "may have reached the controller" in error["message"]
+    assert error["detail"] == {"acked": False, "may_have_run": True}
+    rig.wait_link_up()
+    stop = rig.request("stop")
+    assert stop["result"] == {"sent": True, "acked": True}
