@@ -6,6 +6,7 @@ plant's true position shows what the trolley really did.
 
 from __future__ import annotations
 
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -67,3 +68,21 @@ def test_a_move_whose_ack_is_lost_says_it_may_be_running(rig: Rig) -> None:
     rig.wait_link_up()
     stop = rig.request("stop")
     assert stop["result"] == {"sent": True, "acked": True}
+
+
+def test_sigterm_while_our_frames_are_lost_says_who_stops_the_trolley(rig: Rig) -> None:
+    # On main the log said `stop not acknowledged error=""`: the timeout had no text.
+    home(rig)
+    assert rig.request("jog", velocity_mm_s=100.0)["ok"]
+    time.sleep(0.3)
+    rig.inject("mute 5 to_firmware")  # the controller no longer hears us, the stop included
+    assert rig.daemon is not None
+    rig.daemon.send_signal(signal.SIGTERM)
+    assert rig.daemon.wait(2.0) == 0
+    log = rig.log_tail(20000)
+    assert "stop not acknowledged error=TimeoutError" in log
+    assert "the controller's own watchdog stops the trolley" in log
+    time.sleep(1.0)  # WATCHDOG_MS (500 ms by default) after our last frame …
+    stopped_at_mm = rig.truth_s_mm()
+    time.sleep(0.5)
+    assert abs(rig.truth_s_mm() - stopped_at_mm) < 0.5  # … the trolley stands
