@@ -31,7 +31,7 @@ home_s_mm = 150.0
 reference_marks_mm = [250.0, 400.0]
 [camera]
 source = "none"
-fps = 20.0
+fps = {fps}
 [control]
 socket_path = "{dir}/ctl.sock"
 {control}
@@ -71,10 +71,10 @@ def recv_exactly(sock: socket.socket, n: int) -> bytes:
 class Rig:
     """The emulator and the daemon of one attack, in `dir`."""
 
-    def __init__(self, dir: Path, control: str = "", extra: str = "") -> None:
+    def __init__(self, dir: Path, control: str = "", extra: str = "", fps: float = 20.0) -> None:
         self.dir = dir
         self.config = dir / "orbitar.toml"
-        self.config.write_text(CONFIG.format(dir=dir, control=control, extra=extra))
+        self.config.write_text(CONFIG.format(dir=dir, control=control, extra=extra, fps=fps))
         self.sim: subprocess.Popen[str] | None = None
         self.daemon: subprocess.Popen[bytes] | None = None
 

@@ -28,7 +28,7 @@ CAP = 4  # its max_unix_connections, small so the attack is quick
 @pytest.fixture
 def rig(tmp_path: Path) -> Iterator[Rig]:
     control = f"stall_timeout_s = {STALL_S}\nmax_unix_connections = {CAP}\nclient_buffer_kb = 256"
-    rig = Rig(tmp_path, control=control)
+    rig = Rig(tmp_path, control=control, fps=100.0)  # events fill a stalled watcher sooner
     rig.start_sim()
     try:
         rig.start_daemon()
