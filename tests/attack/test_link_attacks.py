@@ -90,15 +90,10 @@ def test_sigterm_while_our_frames_are_lost_says_who_stops_the_trolley(rig: Rig) 
     assert abs(rig.truth_s_mm() - stopped_at_mm) < 0.5  # … the trolley stands
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="left for host/transport/serial.py + [link]: the device is opened without "
-    "pyserial's exclusive=True (flock), so a second daemon on another control socket shares it",
-)
 def test_a_second_daemon_on_the_same_device_cannot_take_the_link(rig: Rig) -> None:
     # The control socket's lock stops a second daemon on the same socket; one started with
-    # another socket_path but the same serial device opened it too, and the two fought over
-    # the link: the first's link dropped and re-handshook, its commands failed with LinkDown.
+    # another socket_path but the same serial device used to open it too, and the two fought
+    # over the link (re-handshakes, LinkDown). The device is now locked (flock) when opened.
     second = rig.dir / "second.toml"
     second.write_text(rig.config.read_text().replace("ctl.sock", "ctl2.sock"))
     with open(rig.dir / "second.log", "wb") as log:
