@@ -12,6 +12,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from firmware.config import (
+    CAPABILITIES,
     CHAIN_PITCH_UM,
     ENCODER_COUNTS_PER_REV,
     FW_VERSION,
@@ -39,6 +40,7 @@ from protocol import (
     decode_payload,
 )
 from protocol import messages as m
+from protocol.compat import LEGACY_VERSION, decode_handshake
 from protocol.schema import HEADER_SIZE, TEXT
 
 if TYPE_CHECKING:
@@ -49,7 +51,7 @@ Handler = Callable[["Firmware", int, object], Reply]
 
 _BODY_START = HEADER_SIZE - 1  # message id + payload: what makes a retransmission identical
 _HALTED = (State.FAULT, State.ESTOP)
-_WINDOW_PARAMS = (ParamId.SOFT_LIMIT_MIN_UM, ParamId.SOFT_LIMIT_MAX_UM)
+_NO_PARAM_WRITES = (State.BOOT, State.HOMING, State.MOVING)
 _BUSY_MOVING = (State.FAULT, State.ESTOP, State.HOMING)
 
 # Per command id: (field name, lo, hi) of every field, from the schema's declared bounds.
@@ -61,35 +63,131 @@ _CHECKS: dict[int, tuple[tuple[str, int, int], ...]] = {
 
 
 _HELLO_ID = SCHEMA.by_cls[m.Hello].id
-# Stopping is always allowed: a stale STOP or ESTOP replayed after a reboot does no harm.
-_SAFE_BEFORE_HELLO = frozenset(SCHEMA.by_cls[c].id for c in (m.Stop, m.Estop))
+# Stopping never waits: STOP and ESTOP run on arrival, ahead of any gap (PROTOCOL §6, R-ORDER-3),
+# and before a HELLO (a stale stop replayed after a reboot does no harm).
+_STOP_IDS = frozenset(SCHEMA.by_cls[c].id for c in (m.Stop, m.Estop))
+# Ids whose schema says acked: only these take a place in the command sequence.
+_ACKED_IDS = frozenset(spec.id for spec in SCHEMA.specs() if spec.acked)
+_SEQ_MOD = 0x1_0000
+_SEQ_HALF = _SEQ_MOD // 2
 
 
-def handle(fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
-    """Act on one checked frame and queue its reply."""
-    acked = bool(flags & Flag.ACK_REQUESTED)
+def handle(
+    fw: Firmware, seq: int, flags: int, msg_id: int, raw: bytes, version: int = PROTOCOL_VERSION
+) -> None:
+    """Act on one checked frame: unacked at once, acked commands in sequence order."""
+    if version != PROTOCOL_VERSION:
+        _foreign_hello(fw, seq, version, raw)
+        return
+    # HELLO is always answered, flag or not: it is how any client, of any version, asks.
+    acked = bool(flags & Flag.ACK_REQUESTED) or msg_id == _HELLO_ID
+    if not acked or (msg_id not in _ACKED_IDS and msg_id in _CHECKS):
+        # Unacked traffic (HEARTBEAT, CLOCK_SYNC), with or without a stray ACK_REQUESTED, takes
+        # no place in the sequence. An acked-only command without the flag runs only if it stops.
+        if msg_id in _ACKED_IDS and msg_id not in _STOP_IDS:
+            fw.counters.unacked_commands += 1
+            return
+        reply = _execute(fw, seq, msg_id, raw, acked=False)
+        if reply is not None and msg_id not in _ACKED_IDS:
+            fw.tx.send(reply, reply=True)  # CLOCK_SYNC_REPLY: the only unacked answer
+        return
     body = raw[_BODY_START:]
     if msg_id == _HELLO_ID:
-        # A (re)starting host may reuse old seqs: forget every reply before answering (PROTOCOL
-        # §6). HELLO itself is idempotent, so a retransmitted HELLO is simply answered again.
-        fw.replies.clear()
-        fw.hello_seen = True
-    elif acked and not fw.hello_seen and msg_id not in _SAFE_BEFORE_HELLO:
-        # After a reboot the reply cache is empty: a retransmission from before the reboot would
+        _handle_hello(fw, seq, body, raw)
+        return
+    if not fw.hello_seen and msg_id not in _STOP_IDS:
+        # After a reboot the reply memory is empty: a retransmission from before the reboot would
         # run a second time. Refuse until the host has noticed the reboot and said HELLO.
         fw.tx.send(_nak(fw, seq, NakCode.HELLO_REQUIRED), reply=True)
         return
-    if acked:
-        cached = fw.replies.lookup(seq, body)
-        if cached is not None:
-            fw.counters.duplicates += 1
-            fw.tx.send(cached, reply=True)
+    remembered = fw.replies.lookup(seq)
+    if remembered is not None:
+        _answer_repeat(fw, seq, body, remembered)
+        return
+    ahead = (seq - fw.next_cmd_seq) % _SEQ_MOD
+    if msg_id in _STOP_IDS:
+        _run_stop(fw, seq, msg_id, raw, ahead)
+    elif ahead == 0:
+        _run_in_order(fw, seq, msg_id, raw)
+    elif ahead >= _SEQ_HALF:
+        fw.counters.stale += 1  # behind the sequence: its turn has passed
+        fw.tx.send(_nak(fw, seq, NakCode.STALE_SEQ), reply=True)
+    elif ahead <= RX_WINDOW:
+        fw.counters.held += seq not in fw.held
+        fw.held.put(seq, Flag.ACK_REQUESTED, msg_id, raw)
+    else:
+        fw.tx.send(_nak(fw, seq, NakCode.BUSY), reply=True)  # not held, not remembered
+
+
+def _foreign_hello(fw: Firmware, seq: int, version: int, raw: bytes) -> None:
+    """Another version's HELLO: say who we are, in a framing it reads, and change nothing."""
+    if decode_handshake(_HELLO_ID, raw[HEADER_SIZE:]) is None:
+        return
+    identify = _hello(fw, seq, None)
+    fw.tx.send(identify, reply=True, legacy=version == LEGACY_VERSION)
+
+
+def _handle_hello(fw: Firmware, seq: int, body: bytes, raw: bytes) -> None:
+    """Start a command sequence at the HELLO's seq; a repeat of the same HELLO resets nothing."""
+    remembered = fw.replies.lookup(seq)
+    if fw.hello_seen and remembered is not None and remembered[0] == body:
+        fw.counters.duplicates += 1
+        fw.tx.send(remembered[1], reply=True)
+        return
+    # A (re)starting host may reuse old seqs: forget every reply and held frame (PROTOCOL §6).
+    fw.replies.clear()
+    fw.held.clear()
+    fw.hello_seen = True
+    fw.next_cmd_seq = (seq + 1) % _SEQ_MOD
+    _finish(fw, seq, body, _execute(fw, seq, _HELLO_ID, raw, acked=True))
+
+
+def _answer_repeat(fw: Firmware, seq: int, body: bytes, remembered: tuple[bytes, object]) -> None:
+    """A remembered seq: the same command gets its reply again; other content is refused."""
+    if remembered[0] == body:
+        fw.counters.duplicates += 1
+        fw.tx.send(remembered[1], reply=True)
+    else:
+        fw.counters.stale += 1
+        fw.tx.send(_nak(fw, seq, NakCode.STALE_SEQ), reply=True)
+
+
+def _run_in_order(fw: Firmware, seq: int, msg_id: int, raw: bytes) -> None:
+    """Execute the next command of the sequence, then every held one it unblocks."""
+    while True:
+        fw.next_cmd_seq = (seq + 1) % _SEQ_MOD
+        _finish(fw, seq, raw[_BODY_START:], _execute(fw, seq, msg_id, raw, acked=True))
+        held = None if fw.reboot_pending else fw.held.pop(fw.next_cmd_seq)
+        if held is None:
             return
-    reply = _execute(fw, seq, msg_id, raw, acked)
+        seq = fw.next_cmd_seq
+        _, msg_id, raw = held
+
+
+def _run_stop(fw: Firmware, seq: int, msg_id: int, raw: bytes, ahead: int) -> None:
+    """STOP/ESTOP run on arrival; every older command that has not run yet never will."""
+    if ahead >= _SEQ_HALF:
+        # Behind the sequence and forgotten: stopping is never unsafe, so it still runs, but
+        # it does not move the sequence back.
+        reply = _execute(fw, seq, msg_id, raw, acked=True)
+        _finish(fw, seq, raw[_BODY_START:], reply, in_sequence=False)
+        return
+    for old in fw.held.seqs():
+        if (old - seq) % _SEQ_MOD >= _SEQ_HALF:  # older than the stop: cancelled
+            _, _, old_raw = fw.held.pop(old) or (0, 0, b"")
+            _finish(fw, old, old_raw[_BODY_START:], _nak(fw, old, NakCode.STALE_SEQ))
+    _run_in_order(fw, seq, msg_id, raw)
+
+
+def _finish(
+    fw: Firmware, seq: int, body: bytes, reply: Reply | None, in_sequence: bool = True
+) -> None:
+    """Remember and queue the reply of a handled command; STATUS reports the last in sequence."""
     if reply is None:
         return
-    if acked:
-        fw.replies.store(seq, body, reply)
+    if in_sequence:
+        fw.last_cmd_seq = seq
+    fw.replies.store(seq, body, reply)
     fw.tx.send(reply, reply=True)
 
 
@@ -142,6 +240,7 @@ def _hello(fw: Firmware, seq: int, msg: object) -> Reply:
         MAX_FRAME_BYTES,
         RX_WINDOW,
         fw.state,
+        CAPABILITIES,
     )
 
 
@@ -267,11 +366,12 @@ def _param_set(fw: Firmware, seq: int, msg: object) -> Reply:
     """Set a parameter in RAM within its range; the soft window only at standstill, ordered."""
     assert isinstance(msg, m.ParamSet)
     pid = msg.param_id
+    if fw.state in _NO_PARAM_WRITES or fw.profile.moving:
+        # Limits and speeds change only at standstill (PROTOCOL §10): a ceiling lowered under a
+        # running profile could only be honoured by a halt.
+        return _nak(fw, seq, NakCode.BAD_STATE)
     if pid not in PARAMS_BY_ID:
         return _nak(fw, seq, NakCode.UNKNOWN_PARAM)
-    if pid in _WINDOW_PARAMS and fw.profile.moving:
-        # Moving the soft window under a running profile could only be honoured by a halt.
-        return _nak(fw, seq, NakCode.BAD_STATE)
     old = fw.params.values[pid]
     if not fw.params.set(pid, msg.value) or not _limits_ordered(fw):
         fw.params.values[pid] = old
@@ -281,7 +381,9 @@ def _param_set(fw: Firmware, seq: int, msg: object) -> Reply:
 
 
 def _param_persist(fw: Firmware, seq: int, msg: object) -> Reply:
-    """Write the parameter record to flash."""
+    """Write the parameter record to flash, at standstill only (a flash write stalls the CPU)."""
+    if fw.state in _NO_PARAM_WRITES or fw.profile.moving:
+        return _nak(fw, seq, NakCode.BAD_STATE)
     if not fw.hal.flash_write(fw.params.encode()):
         return _nak(fw, seq, NakCode.FLASH_ERROR)
     return _ack(fw, seq)

@@ -25,7 +25,7 @@ from firmware.config import (
     um_to_steps,
 )
 from firmware.hal import Hal
-from firmware.link import LinkCounters, ReplyCache, RxFramer, TxQueue
+from firmware.link import HoldBuffer, LinkCounters, ReplyCache, RxFramer, TxQueue
 from firmware.motion import Profile
 from firmware.storage import LoadResult, ParamStore
 from protocol import Fault, Inputs, ParamId, State, Stream
@@ -51,11 +51,13 @@ HEARTBEAT_IDLE_TICKS = 250
 _F_FOLLOWING = int(Fault.FOLLOWING_ERROR)
 _N_STREAMS = len(Stream)
 _MOTION_STATES = (State.MOVING, State.HOMING)
+_WATCHDOG_STATES = (State.IDLE, State.HOMING, State.READY, State.MOVING)
 
 
 class HomingPhase(enum.Enum):
     """Where homing is."""
 
+    BACKOFF = 3  # started on the switch: moving off it (positive) before the seek
     SEEK = 0  # moving toward the home switch
     INDEX = 1  # on the switch, waiting for the encoder index
     RETURN = 2  # index latched, moving back onto it
@@ -83,6 +85,8 @@ class Firmware:
     index_latch: int | None  # index position this tick, extended counter coordinates
     index_seen: bool
     hello_seen: bool  # a HELLO since boot: until then acked commands other than stops are refused
+    next_cmd_seq: int  # the seq of the acked command whose turn it is (PROTOCOL §6)
+    last_cmd_seq: int  # the last acked command handled in sequence, reported in STATUS
     frame_rx_us: int  # µs timer when the delimiter of the frame being handled arrived
     watchdog_armed: bool
     last_rx_tick: int
@@ -90,6 +94,7 @@ class Firmware:
     homing_phase: HomingPhase
     homing_speed: int
     homing_origin: int
+    switch_counts: int | None  # encoder position where the home switch closed when last homed
     stream_rates: list[int]
     stream_acc: list[int]
     active_streams: list[int]
@@ -101,6 +106,7 @@ class Firmware:
         self.rx = RxFramer(self.counters)
         self.tx = TxQueue(self.counters)
         self.replies = ReplyCache()
+        self.held = HoldBuffer()
         self.profile = Profile()
         self.boots = 0
         self._reboot_pending = False
@@ -128,9 +134,12 @@ class Firmware:
             self.state = State.READY if self.homed else State.IDLE
         if self.active_streams:
             self._telemetry()
+        if (self.state, self.faults) != self._reported:
+            # Every state or fault change is reported, streams on or off (PROTOCOL §10).
+            self.tx.send(self._status(), reply=True)
         if self.ticks - self._last_tx_tick >= HEARTBEAT_IDLE_TICKS:
             self.tx.send(Heartbeat(self.ticks & 0xFFFF_FFFF))
-        out = self.tx.drain()
+        out = self.tx.drain(self.hal.link_tx_room())
         if out:
             self.hal.link_write(out)
             self._last_tx_tick = self.ticks
@@ -138,6 +147,11 @@ class Firmware:
     def request_reboot(self) -> None:
         """Reboot at the start of the next tick (after the current replies went out)."""
         self._reboot_pending = True
+
+    @property
+    def reboot_pending(self) -> bool:
+        """A RESET was acknowledged: nothing more runs before the reboot."""
+        return self._reboot_pending
 
     @property
     def position_um(self) -> int:
@@ -169,14 +183,16 @@ class Firmware:
         self.state = State.ESTOP
 
     def clear_faults(self) -> None:
-        """Release the latches; the commanded position is resynchronised to the encoder."""
-        if self.faults & _F_FOLLOWING:
-            self.set_homed(False)
+        """Release the latches: IDLE and unhomed, whatever the fault (PROTOCOL §10: home again).
+
+        The commanded position is resynchronised to the encoder once the drive stands still.
+        """
+        self.set_homed(False)
         self.faults = 0
         self.hal.drive_enable(True)
         if not self.profile.moving:
             self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
-            self.state = State.READY if self.homed else State.IDLE
+            self.state = State.IDLE
         else:
             self.state = State.MOVING
 
@@ -198,11 +214,20 @@ class Firmware:
 
     def start_homing(self, speed_um_s: int) -> None:
         """Begin homing: seek the home switch in the negative direction."""
+        # On the switch, or homed and behind it (the index lies past the switch, so a homed
+        # trolley usually is): back off past it first, so the switch is always met from the
+        # positive side and the index latched is the same one (PROTOCOL §10, R-HOME-2).
+        # The encoder keeps counting through faults and CLEAR_FAULT, so where the switch was
+        # stays known until a reboot even when the reference is no longer trusted.
+        on_switch = bool(self.switches & _IN_HOME)
+        behind = self.switch_counts is not None and self.enc_pos <= self.switch_counts
         self.set_homed(False)
         self.homing_speed = speed_um_s or self.params.get(ParamId.HOME_SPEED_UM_S)
         self.homing_origin = self.profile.steps
-        self.homing_phase = HomingPhase.INDEX if self.switches & _IN_HOME else HomingPhase.SEEK
-        self.profile.jog(-commands.speed(self.homing_speed), self.max_accel, self.stop_decel)
+        back_off = on_switch or behind
+        self.homing_phase = HomingPhase.BACKOFF if back_off else HomingPhase.SEEK
+        sign = 1 if back_off else -1
+        self.profile.jog(sign * commands.speed(self.homing_speed), self.max_accel, self.stop_decel)
         self.state = State.HOMING
 
     @property
@@ -237,6 +262,9 @@ class Firmware:
         self.rx.reset()
         self.tx.reset()
         self.replies.clear()
+        self.held.clear()
+        self.next_cmd_seq = 0
+        self.last_cmd_seq = 0
         self.profile = Profile()
         self.enc_raw = self.hal.encoder_read()
         self.enc_pos = 0
@@ -252,6 +280,7 @@ class Firmware:
         self.homing_phase = HomingPhase.SEEK
         self.homing_speed = 0
         self.homing_origin = 0
+        self.switch_counts = None
         self.stream_rates = [0] * _N_STREAMS
         self.stream_acc = [0] * _N_STREAMS
         self.active_streams = []
@@ -260,6 +289,8 @@ class Firmware:
         self.state = State.IDLE
         if self.params.load(self.hal.flash_read()) is LoadResult.CORRUPT:
             self.latch_fault(Fault.FLASH, halt=True)
+        # The state at boot is told by IDENTIFY; STATUS reports the changes after it.
+        self._reported = (self.state, self.faults)
 
     # ---- the tick's parts -----------------------------------------------------------------
 
@@ -326,9 +357,10 @@ class Firmware:
         if self.watchdog_armed:
             silence_ms = (self.ticks - self.last_rx_tick) * 1000 // TICK_HZ
             if silence_ms > self.params.values[ParamId.WATCHDOG_MS]:
-                # Nothing to protect while standing still: the latch is for lost motion control.
+                # From every running state, standing still included: a host that went silent
+                # must be noticed before anything moves again (PROTOCOL §9).
                 self.watchdog_armed = False
-                if self.state in _MOTION_STATES:
+                if self.state in _WATCHDOG_STATES:
                     self.latch_fault(Fault.WATCHDOG, halt=False)
 
     def _homing(self) -> None:
@@ -340,17 +372,27 @@ class Firmware:
         if travel > um_to_steps(self.params.get(ParamId.HOMING_TRAVEL_UM)):
             self.latch_fault(Fault.HOMING_FAILED, halt=False)
             return
-        if phase is HomingPhase.SEEK:
+        if phase is HomingPhase.BACKOFF:
+            past = self.switch_counts is None or self.enc_pos > self.switch_counts
+            if not self.switches & _IN_HOME and past:
+                self.homing_phase = HomingPhase.SEEK
+                seek = -commands.speed(self.homing_speed)
+                self.profile.jog(seek, self.max_accel, self.stop_decel)
+        elif phase is HomingPhase.SEEK:
             if self.switches & _IN_HOME:
                 self.homing_phase = HomingPhase.INDEX
+                self.switch_counts = self.enc_pos
         elif self.index_latch is not None:
             self._latch_home(self.index_latch)
 
     def _latch_home(self, index_pos: int) -> None:
         """Make the index pulse's position HOME_OFFSET_UM and return onto it."""
         offset_um = self.params.get(ParamId.HOME_OFFSET_UM)
-        self.enc_pos += um_to_counts(offset_um) - index_pos
+        delta = um_to_counts(offset_um) - index_pos
+        self.enc_pos += delta
         self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+        if self.switch_counts is not None:
+            self.switch_counts += delta  # into the new frame, for the next HOME's back-off
         self.set_homed(True)
         self.homing_phase = HomingPhase.RETURN
         self.profile.move_to(
@@ -369,6 +411,20 @@ class Firmware:
                 acc[s] -= TICK_HZ
                 self._emit(s)
 
+    def _status(self) -> Status:
+        """STATUS now; remembers what was reported so a change is noticed."""
+        self._reported = (self.state, self.faults)
+        target = steps_to_um(self.profile.target_sub // SUB_PER_STEP)
+        return Status(
+            self.now_us,
+            self.state,
+            self.faults,
+            self.inputs,
+            _i32(self.position_um),
+            _i32(target),
+            self.last_cmd_seq,
+        )
+
     def _emit(self, stream: int) -> None:
         """Queue one sample of a stream."""
         t = self.now_us
@@ -379,10 +435,7 @@ class Firmware:
                 t, _i32(self.enc_pos), _i32(self.profile.steps), _i32(self.velocity), flags
             )
         elif stream == Stream.STATUS:
-            target = steps_to_um(self.profile.target_sub // SUB_PER_STEP)
-            msg = Status(
-                t, self.state, self.faults, self.inputs, _i32(self.position_um), _i32(target)
-            )
+            msg = self._status()
         elif stream == Stream.RANGE:
             dist, quality = self.hal.range_read()
             msg = RangeSample(t, dist, quality)

@@ -48,6 +48,11 @@ class Hal(Protocol):
     def link_write(self, data: bytes) -> None:
         """Queue bytes for the host on the link's byte stream."""
 
+    def link_tx_room(self) -> int:
+        """Bytes the transmit path can take now without waiting (free space in the UART's TX
+        DMA buffer, or the CAN mailboxes' worth). The firmware writes no more than this per tick
+        and keeps the rest queued, dropping the oldest telemetry when its queue is full."""
+
     def micros(self) -> int:
         """Free-running microsecond timer, 32-bit wrapping."""
 

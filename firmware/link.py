@@ -22,12 +22,14 @@ from firmware.config import (
 from protocol import PROTOCOL_VERSION, encode_frame
 from protocol.cobs import CobsError
 from protocol.cobs import decode as cobs_decode
-from protocol.crc import crc16
+from protocol.compat import HANDSHAKE_IDS, LEGACY_VERSION, encode_v1, legacy_frame_ok
+from protocol.crc import FRAME_RESIDUE, crc16
 from protocol.schema import CRC_SIZE, HEADER_FORMAT, HEADER_SIZE
 
 _HEADER = struct.Struct(HEADER_FORMAT)
 _DELIM = b"\x00"
 _MIN_RAW = HEADER_SIZE + CRC_SIZE
+_HELLO_ID = min(HANDSHAKE_IDS)  # 0x01; IDENTIFY (0x80) never comes from the host
 
 
 @dataclass
@@ -42,7 +44,10 @@ class LinkCounters:
     oversize: int = 0
     frames_out: int = 0
     tx_dropped: int = 0
-    duplicates: int = 0
+    duplicates: int = 0  # repeats answered from the reply memory
+    held: int = 0  # commands that arrived ahead of a gap and waited for it
+    stale: int = 0  # NAK STALE_SEQ: behind the sequence and not a remembered repeat
+    unacked_commands: int = 0  # acked-only commands sent without ACK_REQUESTED, ignored
 
 
 class RxFramer:
@@ -60,13 +65,17 @@ class RxFramer:
         self._buf.clear()
         self._discarding = False
 
-    def feed(self, data: bytes) -> list[tuple[int, int, int, bytes]]:
-        """Consume received bytes; return the frames that passed COBS, length, CRC and version."""
+    def feed(self, data: bytes) -> list[tuple[int, int, int, bytes, int]]:
+        """Consume received bytes; the frames that passed COBS, length, CRC and version.
+
+        Each is (seq, flags, msg_id, raw without CRC, version); a version other than ours is
+        only ever a HELLO, kept so that it can be answered (PROTOCOL §7).
+        """
         if _DELIM not in data:
             self._append(data)
             return []
         parts = data.split(_DELIM)
-        out: list[tuple[int, int, int, bytes]] = []
+        out: list[tuple[int, int, int, bytes, int]] = []
         for i, part in enumerate(parts):
             self._append(part)
             if i == len(parts) - 1:
@@ -90,7 +99,7 @@ class RxFramer:
             self._discarding = True
             self._buf.clear()
 
-    def _check(self, enc: bytes) -> tuple[int, int, int, bytes] | None:
+    def _check(self, enc: bytes) -> tuple[int, int, int, bytes, int] | None:
         """One delimited frame → header and raw bytes, or None with the reason counted."""
         c = self.counters
         try:
@@ -101,25 +110,33 @@ class RxFramer:
         if len(raw) < _MIN_RAW:
             c.bad_length += 1
             return None
-        if crc16(raw) != 0:
+        legacy = legacy_frame_ok(raw)
+        if crc16(raw) != FRAME_RESIDUE and not legacy:
             c.bad_crc += 1
             return None
         version, flags, seq, msg_id = _HEADER.unpack_from(raw)
-        if version != PROTOCOL_VERSION:
+        if version != PROTOCOL_VERSION and (
+            msg_id != _HELLO_ID or (version == LEGACY_VERSION and not legacy)
+        ):
             c.bad_version += 1
             return None
         c.frames_in += 1
-        return seq, flags, msg_id, raw[: len(raw) - CRC_SIZE]
+        return seq, flags, msg_id, raw[: len(raw) - CRC_SIZE], version
 
 
 class TxQueue:
-    """Outgoing frames, bounded in count; each frame gets the next u16 seq of this direction."""
+    """Outgoing frames, bounded in count; each frame gets the next u16 seq of this direction.
+
+    When the link carries less than the streams produce, frames wait here; once the queue is
+    full the oldest waiting telemetry is dropped (its seq spent, so the host counts the loss),
+    never a reply: replies and event STATUS always find a slot (PROTOCOL §14, R-STREAM-1).
+    """
 
     __slots__ = ("_frames", "counters", "seq")
 
     def __init__(self, counters: LinkCounters) -> None:
         self.counters = counters
-        self._frames: deque[bytes] = deque()
+        self._frames: deque[tuple[bytes, bool]] = deque()  # (wire bytes, is a reply)
         self.seq = 0
 
     def __len__(self) -> int:
@@ -130,48 +147,101 @@ class TxQueue:
         self._frames.clear()
         self.seq = 0
 
-    def send(self, msg: object, reply: bool = False, flags: int = 0) -> bool:
-        """Encode and queue a message; telemetry is dropped (seq still spent) when nearly full."""
+    def send(self, msg: object, reply: bool = False, flags: int = 0, legacy: bool = False) -> bool:
+        """Encode and queue a message; False if it was telemetry dropped for room.
+
+        `legacy` frames an IDENTIFY as version 1, for a version-1 host's HELLO.
+        """
         seq = self.seq
         self.seq = (seq + 1) & 0xFFFF
-        room = TX_QUEUE_FRAMES - len(self._frames)
-        if room <= 0 or (not reply and room <= TX_REPLY_RESERVE_FRAMES):
-            # The spent seq leaves a gap, so the host counts the loss.
-            self.counters.tx_dropped += 1
+        limit = TX_QUEUE_FRAMES if reply else TX_QUEUE_FRAMES - TX_REPLY_RESERVE_FRAMES
+        if len(self._frames) >= limit and not self._drop_oldest_telemetry() and not reply:
+            self.counters.tx_dropped += 1  # nothing older to drop: this one goes
             return False
-        self._frames.append(encode_frame(msg, seq, flags))
+        wire = encode_v1(msg, seq, flags) if legacy else encode_frame(msg, seq, flags)
+        self._frames.append((wire, reply))
         return True
 
-    def drain(self) -> bytes:
-        """Everything queued, as one byte string for the link."""
+    def drain(self, room: int) -> bytes:
+        """The queued frames that fit in `room` bytes, oldest first, as one byte string."""
         frames = self._frames
-        if not frames:
-            return b""
-        self.counters.frames_out += len(frames)
-        data = b"".join(frames)
-        frames.clear()
-        return data
+        out: list[bytes] = []
+        used = 0
+        while frames and used + len(frames[0][0]) <= room:
+            wire, _ = frames.popleft()
+            out.append(wire)
+            used += len(wire)
+        self.counters.frames_out += len(out)
+        return b"".join(out)
+
+    def _drop_oldest_telemetry(self) -> bool:
+        """Remove the oldest queued telemetry frame; False if every queued frame is a reply."""
+        for i, (_, is_reply) in enumerate(self._frames):
+            if not is_reply:
+                del self._frames[i]
+                self.counters.tx_dropped += 1
+                return True
+        return False
 
 
 class ReplyCache:
-    """The replies sent to the last few acknowledged commands, keyed by seq and content."""
+    """The replies sent to the last few executed commands, keyed by seq (PROTOCOL.md §6).
+
+    Each entry also keeps the command's id and payload, so a frame that reuses a remembered
+    seq with other content is recognised (and refused) instead of being taken for a repeat.
+    """
 
     __slots__ = ("_entries",)
 
     def __init__(self) -> None:
-        self._entries: deque[tuple[int, bytes, object]] = deque(maxlen=REPLY_CACHE_SIZE)
+        self._entries: dict[int, tuple[bytes, object]] = {}
+
+    def __len__(self) -> int:
+        return len(self._entries)
 
     def clear(self) -> None:
-        """Forget all replies (controller reset)."""
+        """Forget all replies (controller reset, HELLO)."""
         self._entries.clear()
 
-    def lookup(self, seq: int, body: bytes) -> object | None:
-        """The reply already sent for this seq and command, or None if it is new."""
-        for s, b, reply in self._entries:
-            if s == seq and b == body:
-                return reply
-        return None
+    def lookup(self, seq: int) -> tuple[bytes, object] | None:
+        """(command body, reply) remembered for this seq, or None."""
+        return self._entries.get(seq)
 
     def store(self, seq: int, body: bytes, reply: object) -> None:
-        """Remember the reply to a command, evicting the oldest."""
-        self._entries.append((seq, body, reply))
+        """Remember the reply to a command, evicting the oldest beyond REPLY_CACHE_SIZE."""
+        entries = self._entries
+        entries.pop(seq, None)
+        entries[seq] = (body, reply)
+        if len(entries) > REPLY_CACHE_SIZE:
+            del entries[next(iter(entries))]
+
+
+class HoldBuffer:
+    """Acked commands that arrived ahead of a gap in the command sequence, by seq (bounded)."""
+
+    __slots__ = ("_frames",)
+
+    def __init__(self) -> None:
+        self._frames: dict[int, tuple[int, int, bytes]] = {}
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    def __contains__(self, seq: int) -> bool:
+        return seq in self._frames
+
+    def clear(self) -> None:
+        """Drop every held frame (reset, HELLO)."""
+        self._frames.clear()
+
+    def put(self, seq: int, flags: int, msg_id: int, raw: bytes) -> None:
+        """Hold one frame; a repeat of a held seq keeps the first copy."""
+        self._frames.setdefault(seq, (flags, msg_id, raw))
+
+    def pop(self, seq: int) -> tuple[int, int, bytes] | None:
+        """The frame held for this seq, removed, or None."""
+        return self._frames.pop(seq, None)
+
+    def seqs(self) -> list[int]:
+        """Held seqs, in arrival order."""
+        return list(self._frames)

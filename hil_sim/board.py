@@ -19,6 +19,8 @@ from hil_sim.scenario import Scenario
 
 MASK32 = 0xFFFF_FFFF
 RX_RING_BYTES = 4096  # UART DMA ring: bytes beyond it before the firmware reads are lost
+TX_RING_BYTES = 256  # UART TX DMA buffer, when the board models its line rate
+UNLIMITED_TX_ROOM = 1 << 30
 QUALITY_BEST = 255
 
 
@@ -36,6 +38,10 @@ class SimBoard:
         self._rx_bytes = 0
         self.rx_overruns = 0
         self.tx = bytearray()
+        # The UART's line rate, bytes/s; None: the link takes whatever is written (the default).
+        self.link_tx_bytes_s: float | None = None
+        self._tx_backlog = 0.0  # bytes written but not yet on the line
+        self._tx_backlog_us = 0
         self.flash_fail = False  # fault hook: programming the sector fails
         self._flash = b""
         self._count_base = plant.count_abs
@@ -101,6 +107,18 @@ class SimBoard:
     def link_write(self, data: bytes) -> None:
         """Bytes for the host."""
         self.tx += data
+        if self.link_tx_bytes_s is not None:
+            self.link_tx_room()  # bring the backlog up to now first
+            self._tx_backlog += len(data)
+
+    def link_tx_room(self) -> int:
+        """Free bytes in the TX buffer: the backlog drains at the line rate."""
+        if self.link_tx_bytes_s is None:
+            return UNLIMITED_TX_ROOM
+        elapsed_us = max(0, self.mcu_us - self._tx_backlog_us)
+        self._tx_backlog_us = self.mcu_us
+        self._tx_backlog = max(0.0, self._tx_backlog - elapsed_us * self.link_tx_bytes_s / 1e6)
+        return max(0, int(TX_RING_BYTES - self._tx_backlog))
 
     def micros(self) -> int:
         """The MCU µs counter."""

@@ -41,8 +41,11 @@ class FrameClient:
         if flags is None:
             flags = Flag.ACK_REQUESTED if spec_of(msg).acked else Flag.NONE
         if seq is None:
+            # Acked commands are numbered consecutively; other frames carry the next one's seq
+            # without spending it (PROTOCOL.md §6).
             seq = self.seq
-            self.seq = (self.seq + 1) & 0xFFFF
+            if flags & Flag.ACK_REQUESTED:
+                self.seq = (self.seq + 1) & 0xFFFF
         self.sim.send(encode_frame(msg, seq, flags))
         return seq
 

@@ -64,6 +64,9 @@ COMMANDS: dict[str, Command] = {
         "add_parsers",
         "commissioning: calibrate the rig through the daemon",
     ),
+    "conformance": Command(
+        "host.conformance.run", "add_parser", "check a controller against PROTOCOL.md over its wire"
+    ),
 }
 
 

@@ -41,8 +41,15 @@ class NakCode(enum.IntEnum):
     BEYOND_LIMIT = 6  # the target lies outside the soft limits
     UNKNOWN_PARAM = 7  # no parameter with that id
     FLASH_ERROR = 8  # persisting the parameters failed
-    BUSY = 9  # the receive window is full
+    BUSY = 9  # too far ahead of the command sequence to be held: resend it, same seq, later
     HELLO_REQUIRED = 10  # no HELLO since the controller booted: handshake, then resend
+    STALE_SEQ = 11  # behind the command sequence and not a remembered repeat: nothing done
+
+
+class Capability(enum.IntFlag):
+    """Optional features, offered in HELLO and IDENTIFY; one is used only when both set its bit."""
+
+    NONE = 0  # no optional feature; bits are assigned by later revisions (unknown bits ignored)
 
 
 class Stream(enum.IntEnum):

@@ -2,10 +2,12 @@
 
     wire  = COBS(raw) 0x00
     raw   = version u8 | flags u8 | seq u16 LE | msg_id u8 | payload | crc16 BE
-    crc16 = CRC-16/IBM-3740 over version..payload, sent most significant byte first
+    crc16 = CRC-16/GENIBUS over version..payload, sent most significant byte first
 
-Sending the CRC big-endian lets a receiver check the whole raw frame in one call: the CRC of
-data followed by its own CRC is zero. The decoder never raises; it counts and drops.
+Sending the CRC big-endian lets a receiver check the whole raw frame in one call: the CRC
+register run over data and its own CRC ends at the constant FRAME_RESIDUE. HELLO and IDENTIFY
+of other versions are still decoded (protocol.compat). The decoder never raises; it counts
+and drops.
 """
 
 from __future__ import annotations
@@ -16,7 +18,8 @@ from dataclasses import dataclass, field
 
 from protocol import cobs
 from protocol.codec import RAW_DECODERS, PayloadError, encode_payload
-from protocol.crc import CRC_INIT, crc16
+from protocol.compat import HANDSHAKE_IDS, LEGACY_VERSION, decode_handshake, legacy_frame_ok
+from protocol.crc import CRC_INIT, FRAME_RESIDUE, frame_crc
 from protocol.schema import (
     CRC_SIZE,
     HEADER_FORMAT,
@@ -30,7 +33,7 @@ from protocol.schema import (
 DELIMITER = b"\x00"
 _HEADER = struct.Struct(HEADER_FORMAT)
 _HEADER_UNPACK = _HEADER.unpack_from
-_crc_hqx = binascii.crc_hqx  # CRC-16/IBM-3740 when seeded with 0xFFFF (see protocol.crc)
+_crc_hqx = binascii.crc_hqx  # the CRC-16 register seeded with 0xFFFF (see protocol.crc)
 _MIN_RAW = HEADER_SIZE + CRC_SIZE
 
 
@@ -41,6 +44,7 @@ class Packet:
     seq: int
     flags: int
     message: object
+    version: int = PROTOCOL_VERSION  # another only for a HELLO/IDENTIFY read across versions
 
 
 @dataclass
@@ -66,7 +70,7 @@ def encode_frame(message: object, seq: int, flags: int = Flag.NONE) -> bytes:
         raise ValueError(f"seq={seq} outside [0, 65535]")
     msg_id, payload = encode_payload(message)
     raw = _HEADER.pack(PROTOCOL_VERSION, int(flags), seq, msg_id) + payload
-    raw += crc16(raw).to_bytes(2, "big")
+    raw += frame_crc(raw).to_bytes(2, "big")
     if len(raw) > MAX_RAW_FRAME:
         raise ValueError(f"frame of {len(raw)} bytes exceeds {MAX_RAW_FRAME}")
     return cobs.encode(raw) + DELIMITER
@@ -80,6 +84,7 @@ class FrameDecoder:
     drops: DropCounters = field(default_factory=DropCounters)
     frames_ok: int = 0
     bytes_in: int = 0
+    last_unknown_id: int | None = None  # the id of the last frame dropped as unknown_id
     _buf: bytearray = field(default_factory=bytearray)
     _discarding: bool = False
 
@@ -132,17 +137,17 @@ class FrameDecoder:
         if len(raw) < _MIN_RAW:
             self.drops.bad_length += 1
             return None
-        # CRC sent big-endian: the CRC over data and its own CRC is zero for a good frame.
-        if _crc_hqx(raw, CRC_INIT):
+        # CRC sent big-endian: the register over data and its own CRC ends at the residue.
+        if _crc_hqx(raw, CRC_INIT) != FRAME_RESIDUE and not legacy_frame_ok(raw):
             self.drops.bad_crc += 1
             return None
         version, flags, seq, msg_id = _HEADER_UNPACK(raw)
         if version != PROTOCOL_VERSION:
-            self.drops.bad_version += 1
-            return None
+            return self._foreign(version, flags, seq, msg_id, raw)
         decode = RAW_DECODERS.get(msg_id)
         if decode is None:
             self.drops.unknown_id += 1
+            self.last_unknown_id = msg_id
             return None
         try:
             msg = decode(raw)
@@ -151,3 +156,17 @@ class FrameDecoder:
             return None
         self.frames_ok += 1
         return Packet(seq, flags, msg)
+
+    def _foreign(
+        self, version: int, flags: int, seq: int, msg_id: int, raw: bytes
+    ) -> Packet | None:
+        """Another version's frame: only HELLO and IDENTIFY are read, to show the mismatch."""
+        if msg_id not in HANDSHAKE_IDS or (version == LEGACY_VERSION and not legacy_frame_ok(raw)):
+            self.drops.bad_version += 1
+            return None
+        msg = decode_handshake(msg_id, raw[HEADER_SIZE : len(raw) - CRC_SIZE])
+        if msg is None:
+            self.drops.bad_payload += 1
+            return None
+        self.frames_ok += 1
+        return Packet(seq, flags, msg, version)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import enum
 
-from protocol.crc import CRC_INIT, CRC_POLY
+from protocol.crc import CRC_INIT, CRC_POLY, FRAME_RESIDUE, FRAME_XOROUT
 from protocol.enums import Fault, Inputs, LogLevel, NakCode, State, Stream
 from protocol.params import PARAMS
 from protocol.schema import (
@@ -75,6 +75,8 @@ def generate_header(schema_hash: int) -> str:
             raw=MAX_RAW_FRAME,
             payload=MAX_PAYLOAD,
             crc_init=CRC_INIT,
+            crc_xorout=FRAME_XOROUT,
+            crc_residue=FRAME_RESIDUE,
         ),
         _flags(),
         _enum_block(),
@@ -286,6 +288,10 @@ _PROLOGUE = """\
 #define ORB_MAX_RAW_FRAME {raw}u
 #define ORB_MAX_PAYLOAD {payload}u
 #define ORB_CRC_INIT 0x{crc_init:04X}u
+/* Frame check CRC-16/GENIBUS: the register below, final XOR ORB_CRC_XOROUT; the register run
+ * over a good frame, CRC included, ends at ORB_CRC_RESIDUE (appended zeros change it). */
+#define ORB_CRC_XOROUT 0x{crc_xorout:04X}u
+#define ORB_CRC_RESIDUE 0x{crc_residue:04X}u
 """
 
 _CODEC_HELPERS = """\
@@ -365,8 +371,8 @@ static inline int orb_utf8_valid(const uint8_t *s, size_t n)
 """
 
 _CRC = """\
-/* ---- CRC-16/IBM-3740: poly 0x{poly:04X}, init 0xFFFF, no reflection, no xorout;
- *      check value crc("123456789") = 0x29B1 ---- */
+/* ---- CRC-16 register (CRC-16/IBM-3740): poly 0x{poly:04X}, init 0xFFFF, no reflection;
+ *      check value crc("123456789") = 0x29B1. Frames add the final XOR (CRC-16/GENIBUS). ---- */
 static const uint16_t orb_crc16_table[256] = {{
 {table}
 }};
@@ -456,8 +462,8 @@ static inline size_t orb_frame_encode(uint8_t msg_id, uint16_t seq, uint8_t flag
     orb_put_u16(raw + 2, seq);
     raw[4] = msg_id;
     if (len > 0u) memcpy(raw + ORB_HEADER_SIZE, payload, len);
-    crc = orb_crc16(raw, ORB_HEADER_SIZE + len, ORB_CRC_INIT);
-    raw[ORB_HEADER_SIZE + len] = (uint8_t)(crc >> 8); /* CRC big-endian: CRC over all = 0 */
+    crc = (uint16_t)(orb_crc16(raw, ORB_HEADER_SIZE + len, ORB_CRC_INIT) ^ ORB_CRC_XOROUT);
+    raw[ORB_HEADER_SIZE + len] = (uint8_t)(crc >> 8); /* big-endian: register ends at residue */
     raw[ORB_HEADER_SIZE + len + 1u] = (uint8_t)(crc & 0xFFu);
     n = orb_cobs_encode(raw, ORB_HEADER_SIZE + len + ORB_CRC_SIZE, wire, cap - 1u);
     if (n == 0u || n + 1u > ORB_MAX_WIRE_FRAME) return 0u;
@@ -503,7 +509,12 @@ static inline int orb_decoder_frame(orb_decoder_t *d, orb_packet_t *pkt)
     if (n < 0) { d->drops.bad_cobs++; return 0; }
     raw_len = (size_t)n;
     if (raw_len < ORB_HEADER_SIZE + ORB_CRC_SIZE) { d->drops.bad_length++; return 0; }
-    if (orb_crc16(d->raw, raw_len, ORB_CRC_INIT) != 0u) { d->drops.bad_crc++; return 0; }
+    if (orb_crc16(d->raw, raw_len, ORB_CRC_INIT) != ORB_CRC_RESIDUE) {
+        d->drops.bad_crc++;
+        return 0;
+    }
+    /* A C controller answers HELLO of other versions as PROTOCOL.md section 7 says; this
+     * decoder keeps to its own version. */
     if (d->raw[0] != ORB_PROTOCOL_VERSION) { d->drops.bad_version++; return 0; }
     plen = raw_len - ORB_HEADER_SIZE - ORB_CRC_SIZE;
     check = orb_payload_check(d->raw[4], d->raw + ORB_HEADER_SIZE, plen);

@@ -67,7 +67,7 @@ def _constants(schema_hash: int) -> str:
         ["PROTOCOL_VERSION", str(PROTOCOL_VERSION), "header byte 0 of every frame"],
         ["SCHEMA_HASH", f"0x{schema_hash:08X}", "CRC-32 of the schema's canonical text"],
         ["HEADER_SIZE", str(HEADER_SIZE), "version, flags, seq (2), msg_id"],
-        ["CRC_SIZE", str(CRC_SIZE), "CRC-16/IBM-3740, big-endian"],
+        ["CRC_SIZE", str(CRC_SIZE), "CRC-16/GENIBUS, big-endian"],
         ["MAX_WIRE_FRAME", str(MAX_WIRE_FRAME), "COBS bytes plus the 0x00 delimiter"],
         ["MAX_RAW_FRAME", str(MAX_RAW_FRAME), "header + payload + CRC before COBS"],
         ["MAX_PAYLOAD", str(MAX_PAYLOAD), "largest payload of any message"],
@@ -211,7 +211,7 @@ def _example(spec: MessageSpec, vec: dict[str, Any]) -> str:
         f"#### {spec.name}: {fields}; seq {vec['seq']}, flags 0x{vec['flags']:02X}\n\n"
         + _table(["offset", "part", "bytes", "value"], rows)
         + f"\n- raw frame ({len(raw)} bytes): `{_hex(raw)}`\n"
-        + f"- CRC-16/IBM-3740 over bytes 0..{offset - 1} = {vec['crc']}, appended big-endian\n"
+        + f"- CRC-16/GENIBUS over bytes 0..{offset - 1} = {vec['crc']}, appended big-endian\n"
         + f"- COBS ({len(enc)} bytes): `{_hex(enc)}`\n"
         + f"- wire ({len(enc) + 1} bytes, delimiter added): `{_hex(enc)} 00`\n"
     )

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from protocol.enums import Fault, Inputs, LogLevel, NakCode, State, Stream
+from protocol.enums import Capability, Fault, Inputs, LogLevel, NakCode, State, Stream
 from protocol.schema import I32, TEXT, U8, U16, U32, Direction, field, message
 
 H2C = Direction.TO_CONTROLLER
@@ -37,8 +37,19 @@ _PADDING = (
 class Hello:
     """Open a session: the controller answers with IDENTIFY whatever the versions."""
 
+    # From version 2 on HELLO and IDENTIFY only grow: fields are appended, never moved, so
+    # either side can read the other's version and show why it refuses (PROTOCOL.md §7).
     protocol_version: Annotated[int, field(U8, "", "protocol version the host speaks")]
     schema_hash: Annotated[int, field(U32, "", "CRC-32 of the host's schema text")]
+    capabilities: Annotated[
+        int,
+        field(
+            U32, "", "optional features the host supports; unknown bits ignored", enum=Capability
+        ),
+    ] = 0
+    session_id: Annotated[
+        int, field(U32, "", "random per host session: a repeat of the same HELLO resets nothing")
+    ] = 0
 
 
 @message(0x02, Direction.BOTH)
@@ -182,6 +193,15 @@ class Identify:
     max_frame: Annotated[int, field(U8, "bytes", "largest wire frame accepted")]
     rx_window: Annotated[int, field(U8, "", "commands the host may have unacknowledged", lo=1)]
     state: Annotated[int, field(U8, "", "current state", hi=max(State), enum=State)]
+    capabilities: Annotated[
+        int,
+        field(
+            U32,
+            "",
+            "optional features the controller supports; unknown bits ignored",
+            enum=Capability,
+        ),
+    ] = 0
 
 
 @message(0x81, C2H)
@@ -254,6 +274,9 @@ class Status:
     inputs: Annotated[int, field(U8, "", "input and position flags", hi=_ALL_INPUTS, enum=Inputs)]
     position_um: Annotated[int, field(I32, "µm", "encoder position from home")]
     target_um: Annotated[int, field(I32, "µm", "end of the current motion profile")]
+    cmd_seq: Annotated[
+        int, field(U16, "", "seq of the last acked command handled in sequence order")
+    ] = 0
 
 
 @message(0x92, C2H)

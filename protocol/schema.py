@@ -16,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 # Header: version u8, flags u8, seq u16 LE, message id u8.
 HEADER_FORMAT = "<BBHB"
 HEADER_SIZE = struct.calcsize(HEADER_FORMAT)
@@ -166,16 +166,37 @@ class Schema:
         return [self.by_id[k] for k in sorted(self.by_id)]
 
     def canonical_text(self) -> str:
-        """A stable text of everything that affects the wire, hashed for the handshake."""
+        """The text hashed for the handshake: everything that affects the wire (PROTOCOL §7).
+
+        Line 1 `v<version>`; then one line per message in id order,
+        `<id>:<NAME>:<acked 0|1>:<reply|None>:<field>,<field>...` with each field written
+        `<name>:<wire type>:<lo>..<hi>[:<Enum>]`; then one line per enum a field names, in
+        name order, `<Enum>=<MEMBER>:<value>,...` in value order; lines joined by "\n".
+        """
         lines = [f"v{PROTOCOL_VERSION}"]
+        enums: dict[str, type[enum.IntEnum] | type[enum.IntFlag]] = {}
         for spec in self.specs():
-            cols = ",".join(f"{f.name}:{f.wire.name}" for f in spec.fields)
+            cols = ",".join(_canonical_field(f) for f in spec.fields)
             lines.append(f"{spec.id}:{spec.name}:{int(spec.acked)}:{spec.reply}:{cols}")
+            enums.update({f.info.enum.__name__: f.info.enum for f in spec.fields if f.info.enum})
+        for name in sorted(enums):
+            values = {k: int(v.value) for k, v in enums[name].__members__.items()}
+            members = sorted(values.items(), key=lambda kv: (kv[1], kv[0]))
+            lines.append(f"{name}=" + ",".join(f"{k}:{v}" for k, v in members))
         return "\n".join(lines)
 
     def hash(self) -> int:
         """CRC-32 of the canonical text: equal hashes mean equal wire layouts."""
         return zlib.crc32(self.canonical_text().encode()) & 0xFFFF_FFFF
+
+
+def _canonical_field(f: FieldSpec) -> str:
+    """One field in the canonical text: name, wire type, bounds and enum."""
+    if f.wire is TEXT:
+        return f"{f.name}:{f.wire.name}"
+    lo, hi = f.info.bounds()
+    tail = f":{f.info.enum.__name__}" if f.info.enum is not None else ""
+    return f"{f.name}:{f.wire.name}:{lo}..{hi}{tail}"
 
 
 SCHEMA = Schema()

@@ -17,6 +17,7 @@ from typing import Any
 
 import zenoh
 
+from host.bus.fleet import Fleet
 from host.bus.messages import ALIVE, QUERIES, TOPICS, key, pack, pose_body, stamped
 from host.bus.session import open_session
 from host.config_bus import BusConfig, rig_name
@@ -49,6 +50,7 @@ class BusPublisher:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._entities: list[Any] = []  # queryables and the liveliness token
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._fleet: Fleet | None = None  # the other rigs of the hall, seen on this session
         self._last_state: dict[str, Any] | None = None
         self.error = "not started"
         self.counts = dict.fromkeys(TOPICS, 0) | {"queries": 0, "errors": 0}
@@ -72,6 +74,12 @@ class BusPublisher:
             self._put("stats", stamped(self._stats(), time.monotonic_ns()))
             await asyncio.sleep(self.config.stats_interval_s)
 
+    def hall(self) -> list[dict[str, Any]] | None:
+        """Every rig seen on the bus (this one included, flagged `self`); None while down."""
+        if self._fleet is None:
+            return None
+        return [{**row, "self": row["rig"] == self.rig} for row in self._fleet.rows()]
+
     def publish_pose(self, sample: PoseSample) -> None:
         """A registered camera pose."""
         self._put("pose", pose_body(sample))
@@ -92,6 +100,10 @@ class BusPublisher:
         session, self._session = self._session, None
         if session is None:
             return
+        fleet, self._fleet = self._fleet, None
+        if fleet is not None:
+            with contextlib.suppress(Exception):
+                fleet.close()
         for entity in self._entities:
             with contextlib.suppress(Exception):
                 entity.undeclare()
@@ -116,6 +128,9 @@ class BusPublisher:
             session.declare_queryable(key(self.rig, name), self._answerer(name)) for name in QUERIES
         ]
         self._entities.append(session.liveliness().declare_token(key(self.rig, ALIVE)))
+        fleet = Fleet(session)
+        fleet.start()
+        self._fleet = fleet
         self._session = session
         log.info("bus open", extra={"kv": {"rig": self.rig, "zid": str(session.zid())}})
 

@@ -30,6 +30,7 @@ class PoseSample:
     s_mm: float | None = None  # trolley arc length along the track, if known
     frame_index: int = 0
     homed: bool = False  # the controller's position was referenced to home (else: flagged)
+    head_rad: tuple[float, float] | None = None  # pan, tilt at the exposure, if known
 
     def to_dict(self) -> dict[str, Any]:
         """Plain types for msgpack events and recordings."""
@@ -40,6 +41,7 @@ class PoseSample:
             "s_mm": self.s_mm,
             "frame_index": self.frame_index,
             "homed": self.homed,
+            "head_rad": None if self.head_rad is None else [float(a) for a in self.head_rad],
         }
 
     @classmethod
@@ -47,6 +49,7 @@ class PoseSample:
         """Inverse of `to_dict`."""
         matrix = tuple(tuple(float(x) for x in row) for row in data["T_w_c"])
         s_mm = data.get("s_mm")
+        head = data.get("head_rad")
         return cls(
             int(data["t_ns"]),
             matrix,
@@ -54,6 +57,7 @@ class PoseSample:
             None if s_mm is None else float(s_mm),
             int(data.get("frame_index", 0)),
             bool(data.get("homed", False)),
+            None if head is None else (float(head[0]), float(head[1])),
         )
 
 

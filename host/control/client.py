@@ -34,6 +34,7 @@ class ControlClient:
         self._closed = asyncio.Event()
         self._task = asyncio.create_task(self._read_loop())
         self.unmatched: list[dict[str, Any]] = []  # replies with no request (id null)
+        self._last_word: dict[str, Any] | None = None  # an id-null error: why the server closes
 
     @classmethod
     async def connect_unix(cls, path: str) -> ControlClient:
@@ -52,6 +53,8 @@ class ControlClient:
         request_id = next(self._ids)
         future: asyncio.Future[dict[str, Any]] = asyncio.get_running_loop().create_future()
         self._pending[request_id] = future  # registered before sending: no lost fast reply
+        if self._closed.is_set():
+            self._fail(future)
         try:
             self._writer.write(pack({"id": request_id, "op": op, "args": args}))
             await self._writer.drain()
@@ -115,8 +118,16 @@ class ControlClient:
         finally:
             self._closed.set()
             for future in self._pending.values():
-                if not future.done():
-                    future.set_exception(ConnectionError("control connection closed"))
+                self._fail(future)
+
+    def _fail(self, future: asyncio.Future[dict[str, Any]]) -> None:
+        """End a request on a closed connection with the server's last word, if it said why."""
+        if future.done():
+            return
+        if self._last_word is not None:  # e.g. too_many_clients: say that, not "closed"
+            future.set_result(self._last_word)
+        else:
+            future.set_exception(ConnectionError("control connection closed"))
 
     def _route(self, message: dict[str, Any]) -> None:
         """One incoming message."""
@@ -133,3 +144,5 @@ class ControlClient:
             future.set_result(message)
         else:
             self.unmatched.append(message)
+            if request_id is None and message.get("ok") is False:
+                self._last_word = message

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from host.control.api import ControllerLike, PoseSample
+from host.link.common import CommandTimeout, LinkDown
 from protocol import PARAMS_BY_ID, ParamId
 
 MAX_SPEED_MM_S = 2000.0  # the wire's MAX_SPEED ceiling, 2 m/s
@@ -26,6 +27,11 @@ MAX_POSITION_MM = 1e6
 
 
 SAFETY_OPS = frozenset({"stop", "estop"})  # any role, past every per-client limit
+MOTION_OPS = frozenset({"home", "move", "jog", "head", "clear"})
+LOST_REPLY_TEXT = (
+    "; the command may have reached the controller and be running (its reply was lost): "
+    "check `orbitar status` before repeating it, stop the trolley if it moves"
+)
 WATCHDOG_DEFAULT_MS = PARAMS_BY_ID[ParamId.WATCHDOG_MS].default
 
 
@@ -292,6 +298,13 @@ async def dispatch(ctx: OpContext, role: Role, op: Any, args: Any) -> dict[str, 
         return {"ok": True, "result": await _run(ctx, role, op, args)}
     except OpError as exc:
         return exc.reply()
+    except (CommandTimeout, LinkDown) as exc:
+        if op not in MOTION_OPS:
+            return OpError("failed", f"{type(exc).__name__}: {exc}").reply()
+        # The frame went out and no reply came back: the trolley may be moving as asked.
+        detail = {"acked": False, "may_have_run": True}
+        text = f"{type(exc).__name__}: {exc}{LOST_REPLY_TEXT}"
+        return OpError("failed", text, detail).reply()
     except Exception as exc:  # a controller failure must not reach the caller as an exception
         return OpError("failed", f"{type(exc).__name__}: {exc}").reply()
 

@@ -49,6 +49,11 @@ BACKLOG = 16
 MAX_HELLO_FAILURES = 3  # per connection, then it is closed
 HELLO_FAILURE_BURST = 20.0  # failed hellos tolerated at once over all connections …
 HELLO_FAILURE_RATE_PER_S = 2.0  # … and refilled at this rate; beyond, the connection is closed
+# Beyond a listener's cap a few more connections may still send stop and estop (after a hello
+# on TCP), so a full listener never locks the operator's stop out; anything else is refused.
+SAFETY_ROOM = 4
+SAFETY_ROOM_IDLE_S = 5.0
+SAFETY_ROOM_OPS = SAFETY_OPS | {"hello"}
 
 
 class ControlServerError(RuntimeError):
@@ -65,10 +70,12 @@ class ClientConnection:
         writer: asyncio.StreamWriter,
         role: Role,
         listener: str,
+        safety_only: bool = False,
     ) -> None:
         self.server = server
         self.role = role
         self.listener = listener  # "unix" or "tcp"
+        self.safety_only = safety_only  # admitted over the cap: stop, estop and hello only
         self.peer = str(writer.get_extra_info("peername") or listener)
         self.topics: set[str] = set()
         self.dropped_total = 0
@@ -229,6 +236,11 @@ class ClientConnection:
         """Run one request as its own task; stop and estop bypass the in-flight cap."""
         op = message.get("op")
         safety = isinstance(op, str) and op in SAFETY_OPS and self.role is not Role.NONE
+        if self.safety_only and not (isinstance(op, str) and op in SAFETY_ROOM_OPS):
+            text = f"{self.server.cap_text(self.listener)}; only stop and estop are served"
+            self.reply(error_reply(message.get("id"), "too_many_clients", text))
+            self.end("too_many_clients", text)
+            return
         if safety:
             while self._safety >= MAX_SAFETY_INFLIGHT:  # stops in flight are already stopping it
                 await asyncio.wait(set(self._requests), return_when="FIRST_COMPLETED")
@@ -310,10 +322,13 @@ class ClientConnection:
     async def _watch_timeouts(self) -> None:
         """Cut off a TCP client that never says hello, and any client idle for too long."""
         cfg = self.server.config
-        period_s = min(max(min(cfg.hello_timeout_s, cfg.idle_timeout_s) / 4, 0.05), 5.0)
+        idle_s = SAFETY_ROOM_IDLE_S if self.safety_only else cfg.idle_timeout_s
+        period_s = min(max(min(cfg.hello_timeout_s, idle_s) / 4, 0.05), 5.0)
         while not self._ended:
             await asyncio.sleep(period_s)
             now = time.monotonic()
+            if self.safety_only and not self._requests and now - self._last_rx >= idle_s:
+                self.end("timeout", f"idle for {idle_s} s on a connection over the cap")
             if self.role is Role.NONE and now - self._t_connect >= cfg.hello_timeout_s:
                 text = f"no successful hello within {cfg.hello_timeout_s} s"
                 self.end("timeout", text + " (control.hello_timeout_s)")
@@ -329,12 +344,26 @@ class ClientConnection:
             self._wake.clear()
             while (data := self._next_bytes()) is not None:
                 self._writer.write(data)
-                await self._writer.drain()
+                await self._drain()
                 if self.backlog_bytes() <= self._resume_bytes:
                     self._room.set()
             self._room.set()
             if self._closing:
                 return
+
+    async def _drain(self) -> None:
+        """Wait for the kernel to take our bytes; a peer that takes none for too long is cut off.
+
+        A client that only watches sends nothing, so the read loop's stall check never sees it;
+        without this a watcher that stopped reading would hold its slot for ever.
+        """
+        stall_s = self.server.config.stall_timeout_s
+        try:
+            await asyncio.wait_for(self._writer.drain(), stall_s)
+        except TimeoutError:
+            text = f"{self.backlog_bytes()} bytes not read within {stall_s} s"
+            self.end("stalled", text, abort=True)
+            raise ConnectionError(text) from None
 
     def _next_bytes(self) -> bytes | None:
         """The next outgoing message by priority, encoded; None when there is nothing to send."""
@@ -356,7 +385,11 @@ class ClientConnection:
         try:
             return pack(message)
         except (ValueError, TypeError) as exc:
-            return pack(error_reply(message.get("id"), "too_large", str(exc)))
+            request_id = message.get("id")
+            with contextlib.suppress(ValueError, TypeError):
+                return pack(error_reply(request_id, "too_large", str(exc)))
+            # The id itself is too big to send back: answer without it (exactly one reply).
+            return pack(error_reply(None, "too_large", f"{exc}; the request's id is too large"))
 
 
 class ControlServer:
@@ -391,14 +424,14 @@ class ControlServer:
         unix = await asyncio.start_unix_server(self._on_unix, path=str(path), backlog=BACKLOG)
         self._servers.append(unix)
         _set_permissions(path, self.config.socket_mode, self.config.socket_group)
-        caps = self.config.max_unix_connections + BACKLOG
+        caps = self.config.max_unix_connections + BACKLOG + SAFETY_ROOM
         if self.config.tcp_enabled:
             tcp = await asyncio.start_server(
                 self._on_tcp, self.config.tcp_host, self.config.tcp_port, backlog=BACKLOG
             )
             self._servers.append(tcp)
             self.tcp_port = int(tcp.sockets[0].getsockname()[1])
-            caps += self.config.max_tcp_connections + BACKLOG
+            caps += self.config.max_tcp_connections + BACKLOG + SAFETY_ROOM
         soft, wanted = ensure_fd_room(caps)
         if soft < wanted:
             kv = {"nofile": soft, "wanted": wanted}
@@ -456,27 +489,44 @@ class ControlServer:
 
     async def _on_unix(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """A Unix-socket client: file permissions already vouched for it."""
-        cap = self.config.max_unix_connections
-        if self._admit(writer, "unix", cap, "control.max_unix_connections"):
-            await self._serve(ClientConnection(self, reader, writer, Role.OPERATOR, "unix"))
+        room = self._admit(writer, "unix")
+        if room is not None:
+            client = ClientConnection(self, reader, writer, Role.OPERATOR, "unix", room)
+            await self._serve(client)
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """A TCP client: nothing but hello until it shows a token."""
-        cap = self.config.max_tcp_connections
-        if self._admit(writer, "tcp", cap, "control.max_tcp_connections"):
-            await self._serve(ClientConnection(self, reader, writer, Role.NONE, "tcp"))
+        room = self._admit(writer, "tcp")
+        if room is not None:
+            await self._serve(ClientConnection(self, reader, writer, Role.NONE, "tcp", room))
 
-    def _admit(self, writer: asyncio.StreamWriter, listener: str, cap: int, key: str) -> bool:
-        """Below the listener's cap: True; else tell the client why, hang up and return False."""
-        if self.connections(listener) < cap and not self._closed:
+    def cap_text(self, listener: str) -> str:
+        """Why a connection over the cap is refused, naming the key."""
+        key = f"max_{listener}_connections"
+        return (
+            f"{getattr(self.config, key)} clients already connected on {listener} (control.{key})"
+        )
+
+    def _admit(self, writer: asyncio.StreamWriter, listener: str) -> bool | None:
+        """False below the listener's cap, True in the safety room above it; else refuse: None."""
+        cap = getattr(self.config, f"max_{listener}_connections")
+        ordinary = sum(1 for c in self._clients if c.listener == listener and not c.safety_only)
+        if self._closed:
+            return None
+        if ordinary < cap:
+            return False
+        text = self.cap_text(listener)
+        extra = sum(1 for c in self._clients if c.listener == listener and c.safety_only)
+        if extra < SAFETY_ROOM:
+            note = "control client over the cap: stop and estop only"
+            self.throttled.warning(f"room:{listener}", note, reason=text)
             return True
         self.stats["refused"] += 1
-        text = f"{cap} clients already connected on {listener} ({key})"
         self.throttled.warning(f"refused:{listener}", "control client refused", reason=text)
         with contextlib.suppress(ConnectionError, OSError):
             writer.write(pack(error_reply(None, "too_many_clients", text)))
         writer.close()
-        return False
+        return None
 
     async def _serve(self, client: ClientConnection) -> None:
         """Track a client for its lifetime."""

@@ -31,6 +31,7 @@ from host.geometry.transforms import make_T
 from host.link import Controller
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
+from protocol import ParamId
 from protocol.enums import Fault, State
 
 FloatArray = NDArray[np.float64]
@@ -50,6 +51,7 @@ SETTLED_PITCH_FRACTION = 0.125  # ~2 px: far above the fused error, far below a 
 HOMING_RUN_UP_MM = 100.0  # drive to just before the home switch fast, then seek it slowly
 SETTLE_S = 0.2  # ring-down after the head reports it arrived
 HEAD_TIMEOUT_S = 10.0
+DEMO_WATCHDOG_MS = 2_000
 HEAD_TOLERANCE_RAD = 2e-3
 ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
 MAX_FRAMES = 4  # frames per wanted observation before the point gives up
@@ -234,6 +236,10 @@ async def start_host(bench: Bench, link: str) -> list[str]:
     if snap.state is State.FAULT and snap.faults == Fault.WATCHDOG:
         await bench.ctrl.clear_fault()
         cleared.append("WATCHDOG")
+    # The demo runs simulator, registration and host in one process on a shared machine, so
+    # its loop can stall past the default 500 ms; the watchdog faults a standing controller
+    # too (PROTOCOL.md §9), so give it the slack a real host on its own machine does not need.
+    await bench.ctrl.set_param(ParamId.WATCHDOG_MS, DEMO_WATCHDOG_MS)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
     return cleared

@@ -163,6 +163,7 @@ class LinkStats:
     retransmits: int = 0
     timeouts: int = 0
     naks: int = 0
+    busy_naks: int = 0  # NAK BUSY: ahead of a gap, resent by the retransmission timer
     duplicate_replies: int = 0  # replies to a seq no longer pending (late copies)
     unexpected_replies: int = 0  # reply of the wrong type for its req_seq
     rx_lost: int = 0  # controller frames missing from its seq (telemetry losses)

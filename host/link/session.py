@@ -30,6 +30,8 @@ from host.link.common import (
     LinkEvent,
     LinkStats,
     ProtocolMismatch,
+    decode_enum,
+    note_unknown,
 )
 from host.transport.base import Transport, TransportError
 from protocol import (
@@ -43,7 +45,7 @@ from protocol import (
 )
 from protocol.enums import NakCode, State
 from protocol.messages import ClockSync as ClockSyncMsg
-from protocol.messages import ClockSyncReply, Heartbeat, Hello, Identify, Nak
+from protocol.messages import ClockSyncReply, Estop, Heartbeat, Hello, Identify, Nak, Stop
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +54,15 @@ U32_MOD = 1 << 32
 # A frame with a tiny seq far from the expected one: the controller's counter restarted.
 SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
+HOST_CAPABILITIES = 0  # Capability bits this host offers in HELLO (none yet)
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
 RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
 RTO_BETA = 1 / 4
 RTO_K = 4
+
+_STOPS = (Stop, Estop)
+_KNOWN_FLAGS = int(Flag.ACK_REQUESTED | Flag.RETRANSMIT)
 
 EventHandler = Callable[[LinkEvent, str], None]
 PacketHandler = Callable[[Packet], None]
@@ -171,12 +177,15 @@ class Session:
         # A random first seq: a restarted host is unlikely to repeat its predecessor's seqs
         # even towards a controller that kept its reply cache (PROTOCOL.md §6).
         self._tx_seq = random.randrange(SEQ_MOD)
+        # Names this session in HELLO: the controller tells a repeated HELLO from a new host's.
+        self._session_id = random.randrange(U32_MOD)
+        self.capabilities = 0
         self._rx_seq = _RxSeq()
         self._inflight: dict[int, _Pending] = {}
         self._window = 1  # until IDENTIFY tells us rx_window
         self._cmd_index = 0
         self._slot_waiters: list[asyncio.Future[None]] = []
-        self._probes: dict[int, tuple[int, int]] = {}
+        self._probes: dict[int, int] = {}  # token → host send time, ns
         self._tokens = itertools.count(1)
         self._tasks: list[asyncio.Task[None]] = []
         self._running = False
@@ -228,7 +237,7 @@ class Session:
     async def handshake(self) -> tuple[Identify, bool]:
         """HELLO → IDENTIFY; returns it and whether the boot id changed (controller reset)."""
         self._window = 1
-        hello = Hello(protocol_version=PROTOCOL_VERSION, schema_hash=SCHEMA_HASH)
+        hello = Hello(PROTOCOL_VERSION, SCHEMA_HASH, HOST_CAPABILITIES, self._session_id)
         packet = await self.request(hello, max_tries=self.config.handshake_tries)
         ident = packet.message
         assert isinstance(ident, Identify)
@@ -243,6 +252,8 @@ class Session:
         if rebooted:
             self.stats.controller_resets += 1
         self.identity = ident
+        # A feature is used only when both sides offer it (issue 16 negotiates with these bits).
+        self.capabilities = HOST_CAPABILITIES & ident.capabilities
         cache = self.config.reply_cache_factor * ident.rx_window
         self._window = max(1, min(ident.rx_window, (cache + 1) // 2))
         self._peer_uptime_ms = None
@@ -255,7 +266,11 @@ class Session:
         spec = spec_of(message)
         if not spec.acked or spec.reply is None:
             raise ValueError(f"{spec.name} is not an acknowledged command")
-        await self._acquire_slot()
+        if type(message) not in _STOPS:
+            # STOP and ESTOP never wait for a window slot; the controller runs them on arrival.
+            await self._acquire_slot()
+        elif not self._running:
+            raise LinkDown("session is not running")
         loop = asyncio.get_running_loop()
         entry = _Pending(self._next_seq(), message, spec.name, spec.reply, loop.create_future())
         entry.index = self._cmd_index
@@ -272,10 +287,14 @@ class Session:
             self._forget(entry)
 
     def send(self, message: object) -> int:
-        """Send an unacknowledged frame (HEARTBEAT, CLOCK_SYNC); returns its seq."""
+        """Send an unacknowledged frame (HEARTBEAT, CLOCK_SYNC); returns its seq.
+
+        Only acked commands spend a seq (the controller runs them in seq order and waits for
+        a gap to fill); an unacked frame carries the seq the next command will take.
+        """
         if not self._running:
             raise LinkDown("session is not running")
-        seq = self._next_seq()
+        seq = self._tx_seq
         self._write(message, seq, Flag.NONE)
         return seq
 
@@ -354,12 +373,12 @@ class Session:
     def _window_open(self) -> bool:
         """A sliding window over commands, not a count.
 
-        The controller remembers the replies of its last rx_window executed commands. A pending
-        command X must still be in that cache when its retransmission arrives, or it runs twice.
-        After X executes, the controller may execute the older commands still pending when X
-        was sent and every newer one: at most 2·(span − 1) of them, so with a cache of
-        factor × rx_window the span of first sends is held to (factor·rx_window + 1) // 2,
-        never above rx_window.
+        PROTOCOL.md §6: at most rx_window consecutive seqs from the oldest unanswered command
+        to the newest, so the controller can hold everything ahead of a lost command (never
+        BUSY). The controller runs commands in seq order, so after X ran it has run at most
+        span − 1 newer ones before X's retransmission arrives; a duplicate memory of
+        factor × rx_window (≥ 2 × rx_window by the spec) always still holds X's reply. The span
+        is also kept to (factor·rx_window + 1) // 2 so a smaller declared memory stays safe.
         """
         if not self._inflight:
             return True
@@ -409,12 +428,17 @@ class Session:
     def _on_bytes(self, data: bytes) -> None:
         """Transport receiver: decode and dispatch every complete frame."""
         self.stats.bytes_in += len(data)
+        unknown_ids = self._decoder.drops.unknown_id
         for packet in self._decoder.feed(data):
             self.stats.frames_in += 1
+            if packet.flags & ~_KNOWN_FLAGS:
+                note_unknown("header flag bits", packet.flags & ~_KNOWN_FLAGS)
             if self._rx_seq.see(packet.seq, self.stats):
                 self._emit(LinkEvent.RESET_SUSPECTED, f"controller seq restarted at {packet.seq}")
             self._last_rx_s = asyncio.get_running_loop().time()
             self._dispatch(packet)
+        if self._decoder.drops.unknown_id != unknown_ids:
+            note_unknown("message id", self._decoder.last_unknown_id or 0)
 
     def _dispatch(self, packet: Packet) -> None:
         """Route one packet: replies to their requests, the rest to the owner."""
@@ -437,10 +461,14 @@ class Session:
             return
         if isinstance(msg, Nak):
             self.stats.naks += 1
-            exc = ControllerRejected(
-                entry.name, enum_or_int(NakCode, msg.code), enum_or_int(State, msg.state)
-            )
-            entry.future.set_exception(exc)
+            if msg.code == NakCode.BUSY:
+                # Ahead of a gap the controller could not hold: the command did not run and the
+                # retransmission timer resends it, same seq, once the gap has filled.
+                self.stats.busy_naks += 1
+                return
+            code, state = decode_enum(NakCode, msg.code), decode_enum(State, msg.state)
+            # Failed at once, whatever the code: a newer controller's refusal is still a refusal.
+            entry.future.set_exception(ControllerRejected(entry.name, code, state))
             if msg.code == NakCode.HELLO_REQUIRED:
                 # The controller rebooted since our HELLO: the supervisor re-handshakes.
                 self._emit(LinkEvent.RESET_SUSPECTED, "controller asks for HELLO (it rebooted)")
@@ -470,13 +498,13 @@ class Session:
 
     def _on_clock_reply(self, msg: ClockSyncReply) -> None:
         """Pair the reply with its probe and feed the estimator."""
-        probe = self._probes.pop(msg.req_seq, None)
-        if probe is None or probe[1] != msg.token:
+        sent_ns = self._probes.pop(msg.token, None)
+        if sent_ns is None:
             self.stats.duplicate_replies += 1
             return
         self.stats.clock_replies += 1
         t1_ns = self.transport.rx_time_ns or time.monotonic_ns()  # its chunk's arrival (recorded)
-        self.clock.add_probe(probe[0], msg.mcu_time_us, t1_ns, msg.rx_time_us)
+        self.clock.add_probe(sent_ns, msg.mcu_time_us, t1_ns, msg.rx_time_us)
 
     def _emit(self, event: LinkEvent, detail: str) -> None:
         """Tell the owner; logging here so nothing goes unseen."""
@@ -522,7 +550,7 @@ class Session:
             if seq is not None:
                 t0 = self.transport.tx_time_ns or t0  # taken just before the write (recorded)
                 self.stats.clock_probes += 1
-                self._probes[seq] = (t0, token)
+                self._probes[token] = t0
                 while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
                     del self._probes[next(iter(self._probes))]
 
@@ -548,11 +576,3 @@ def _check_identity(ident: Identify) -> None:
     bad = [name for name in _IDENTITY_POSITIVE if getattr(ident, name) <= 0]
     if bad:
         raise BadIdentity(f"IDENTIFY has non-positive {', '.join(bad)}: controller misconfigured")
-
-
-def enum_or_int(kind: Any, value: int) -> Any:
-    """Wire integer → enum member; an unknown value stays an int rather than crashing."""
-    try:
-        return kind(value)
-    except ValueError:
-        return value

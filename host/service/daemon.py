@@ -307,7 +307,9 @@ class Daemon:
                 await asyncio.wait_for(self.controller.stop(), STOP_ACK_TIMEOUT_S)
                 log.info("controlled stop acknowledged")
             except Exception as exc:  # any failure here: the firmware watchdog stops it anyway
-                log.warning("stop not acknowledged", extra={"kv": {"error": exc}})
+                why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                kv = {"error": why, "watchdog": "the controller's own watchdog stops the trolley"}
+                log.warning("stop not acknowledged", extra={"kv": kv})
         try:
             await asyncio.wait_for(self.controller.close(), LINK_CLOSE_TIMEOUT_S)
         except Exception as exc:

@@ -340,12 +340,18 @@ class RateMeter:
 
 
 def pose_sample(
-    t_ns: int, T_w_c: FloatArray, snapshot: Mapping[str, Any], s_mm: float, index: int
+    t_ns: int,
+    T_w_c: FloatArray,
+    snapshot: Mapping[str, Any],
+    s_mm: float,
+    index: int,
+    head_rad: tuple[float, float],
 ) -> PoseSample:
     """A PoseSample with plain nested tuples (msgpack- and FreeD-ready), flagged when unhomed."""
     matrix = tuple(tuple(float(x) for x in row) for row in T_w_c)
     state = str(snapshot.get("state", "UNKNOWN"))
-    return PoseSample(t_ns, matrix, state, float(s_mm), index, bool(snapshot.get("homed")))
+    head = (float(head_rad[0]), float(head_rad[1]))
+    return PoseSample(t_ns, matrix, state, float(s_mm), index, bool(snapshot.get("homed")), head)
 
 
 # ---- the loops ---------------------------------------------------------------------------
@@ -405,7 +411,8 @@ class PosePublisher:
         self.published += 1
         self._meter.tick(t_ns)
         snapshot = self.controller.snapshot()
-        self.sink(pose_sample(t_ns, pose.T_w_c, snapshot, pose.s_mm, self.published))
+        head = (pose.pan_rad, pose.tilt_rad)
+        self.sink(pose_sample(t_ns, pose.T_w_c, snapshot, pose.s_mm, self.published, head))
         return True
 
 
@@ -463,7 +470,8 @@ class CameraPoseLoop:
             return
         self._meter.tick(time.monotonic_ns())
         snapshot = self.controller.snapshot()
-        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, snapshot, reg.s_mm, reg.index))
+        head = (reg.pan_rad, reg.tilt_rad)
+        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, snapshot, reg.s_mm, reg.index, head))
 
 
 def open_camera(config: Config) -> FrameSource | None:

@@ -33,7 +33,10 @@ def attach_station(daemon: Daemon) -> Station:
     def frames() -> dict[str, Any]:
         return frame_loop_status(daemon.frame_loop) or {"source": {"kind": "none"}}
 
-    station = Station(daemon.config, daemon.server.context, frames, ghost_offset_mm)
+    def hall() -> list[dict[str, Any]] | None:
+        return daemon.bus.hall() if daemon.bus is not None else None
+
+    station = Station(daemon.config, daemon.server.context, frames, ghost_offset_mm, hall)
     loop = getattr(daemon.frame_loop, "loop", None)
     if isinstance(loop, FrameLoop):
         loop.outputs.append(station.on_registration)

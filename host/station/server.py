@@ -65,6 +65,7 @@ class Station:
         context: OpContext,
         extra_status: StatusProvider = dict,
         ghost_offset_mm: Callable[[], float | None] = lambda: None,
+        hall: Callable[[], list[dict[str, Any]] | None] = lambda: None,
     ) -> None:
         from host.service.wiring import (
             build_camera,
@@ -79,6 +80,7 @@ class Station:
         self.context = context
         self.extra_status = extra_status
         self.ghost_offset_mm = ghost_offset_mm
+        self.hall = hall  # the rigs of the hall on the bus, None without one
         self.track = build_track(config)
         self.parts = load_parts(
             sidecar_path(rig_spec(config).workpiece.model, config.ui.parts_path)
@@ -185,6 +187,7 @@ class Station:
             "link": link.get("result") or {},
             "frames": dict(self.extra_status()),
             "station": self.station_stats(),
+            "hall": self.hall(),
         }
 
     def station_stats(self) -> dict[str, Any]:

@@ -84,11 +84,13 @@ class ByteStream:
         if self.url.startswith(POLLED_SCHEMES):
             self._aio = await _PolledTransport.open(self, self.url, self.baudrate, self._options)
             return
+        # A device path is locked (flock) so a second daemon cannot share it and fight over the
+        # link; URL handlers (socket://, rfc2217://) have no file to lock.
+        options = self._options if "://" in self.url else {"exclusive": True, **self._options}
         try:
             aio, _ = await serial_asyncio_fast.create_serial_connection(
-                loop, lambda: _StreamProtocol(self), self.url, baudrate=self.baudrate,
-                **self._options,
-            )  # fmt: skip
+                loop, lambda: _StreamProtocol(self), self.url, baudrate=self.baudrate, **options
+            )
         except Exception as exc:  # pyserial raises SerialException, an OSError subclass, or worse
             raise TransportError(f"{self._owner.describe()}: {exc}") from exc
         self._aio = aio

@@ -16,14 +16,18 @@
 #include <stdint.h>
 #include <string.h>
 
-#define ORB_PROTOCOL_VERSION 1u
-#define ORB_SCHEMA_HASH UINT32_C(0xDFFB2840)
+#define ORB_PROTOCOL_VERSION 2u
+#define ORB_SCHEMA_HASH UINT32_C(0x5FE17393)
 #define ORB_HEADER_SIZE 5u
 #define ORB_CRC_SIZE 2u
 #define ORB_MAX_WIRE_FRAME 84u /* encoded bytes plus the 0x00 delimiter */
 #define ORB_MAX_RAW_FRAME 82u
 #define ORB_MAX_PAYLOAD 75u
 #define ORB_CRC_INIT 0xFFFFu
+/* Frame check CRC-16/GENIBUS: the register below, final XOR ORB_CRC_XOROUT; the register run
+ * over a good frame, CRC included, ends at ORB_CRC_RESIDUE (appended zeros change it). */
+#define ORB_CRC_XOROUT 0xFFFFu
+#define ORB_CRC_RESIDUE 0x1D0Fu
 
 /* ---- header flags ---- */
 #define ORB_FLAG_ACK_REQUESTED 0x01u
@@ -61,7 +65,8 @@ typedef enum {
     ORB_NAK_CODE_UNKNOWN_PARAM = 7,
     ORB_NAK_CODE_FLASH_ERROR = 8,
     ORB_NAK_CODE_BUSY = 9,
-    ORB_NAK_CODE_HELLO_REQUIRED = 10
+    ORB_NAK_CODE_HELLO_REQUIRED = 10,
+    ORB_NAK_CODE_STALE_SEQ = 11
 } orb_nak_code_t;
 
 typedef enum {
@@ -217,16 +222,20 @@ static inline int orb_utf8_valid(const uint8_t *s, size_t n)
 
 /* ---- HELLO (0x01, host → controller): Open a session: the controller answers with IDENTIFY whatever the versions. */
 #define ORB_MSG_HELLO 0x01u
-#define ORB_HELLO_SIZE 5u
+#define ORB_HELLO_SIZE 13u
 typedef struct {
     uint8_t protocol_version; /**< protocol version the host speaks */
     uint32_t schema_hash; /**< CRC-32 of the host's schema text */
+    uint32_t capabilities; /**< optional features the host supports; unknown bits ignored */
+    uint32_t session_id; /**< random per host session: a repeat of the same HELLO resets nothing */
 } orb_hello_t;
 
 static inline size_t orb_hello_encode(const orb_hello_t *m, uint8_t *buf)
 {
     orb_put_u8(buf + 0, m->protocol_version);
     orb_put_u32(buf + 1, m->schema_hash);
+    orb_put_u32(buf + 5, m->capabilities);
+    orb_put_u32(buf + 9, m->session_id);
     return ORB_HELLO_SIZE;
 }
 
@@ -235,6 +244,8 @@ static inline int orb_hello_decode(orb_hello_t *m, const uint8_t *buf, size_t le
     if (len != ORB_HELLO_SIZE) return -1;
     m->protocol_version = orb_get_u8(buf + 0);
     m->schema_hash = orb_get_u32(buf + 1);
+    m->capabilities = orb_get_u32(buf + 5);
+    m->session_id = orb_get_u32(buf + 9);
     return 0;
 }
 
@@ -652,7 +663,7 @@ static inline int orb_stream_set_in_range(const orb_stream_set_t *m)
 
 /* ---- IDENTIFY (0x80, controller → host): Answer to HELLO: who the controller is and the constants the host needs. */
 #define ORB_MSG_IDENTIFY 0x80u
-#define ORB_IDENTIFY_SIZE 35u
+#define ORB_IDENTIFY_SIZE 39u
 typedef struct {
     uint16_t req_seq; /**< sequence number of the command this answers */
     uint8_t protocol_version; /**< protocol version the controller speaks */
@@ -667,6 +678,7 @@ typedef struct {
     uint8_t max_frame; /**< [bytes] largest wire frame accepted */
     uint8_t rx_window; /**< commands the host may have unacknowledged */
     uint8_t state; /**< current state */
+    uint32_t capabilities; /**< optional features the controller supports; unknown bits ignored */
 } orb_identify_t;
 
 static inline size_t orb_identify_encode(const orb_identify_t *m, uint8_t *buf)
@@ -684,6 +696,7 @@ static inline size_t orb_identify_encode(const orb_identify_t *m, uint8_t *buf)
     orb_put_u8(buf + 32, m->max_frame);
     orb_put_u8(buf + 33, m->rx_window);
     orb_put_u8(buf + 34, m->state);
+    orb_put_u32(buf + 35, m->capabilities);
     return ORB_IDENTIFY_SIZE;
 }
 
@@ -703,6 +716,7 @@ static inline int orb_identify_decode(orb_identify_t *m, const uint8_t *buf, siz
     m->max_frame = orb_get_u8(buf + 32);
     m->rx_window = orb_get_u8(buf + 33);
     m->state = orb_get_u8(buf + 34);
+    m->capabilities = orb_get_u32(buf + 35);
     return 0;
 }
 
@@ -771,7 +785,7 @@ static inline int orb_nak_decode(orb_nak_t *m, const uint8_t *buf, size_t len)
 static inline int orb_nak_in_range(const orb_nak_t *m)
 {
     return m->code >= UINT32_C(1) &&
-           m->code <= UINT32_C(10) &&
+           m->code <= UINT32_C(11) &&
            m->state <= UINT32_C(6);
 }
 
@@ -881,7 +895,7 @@ static inline int orb_encoder_sample_in_range(const orb_encoder_sample_t *m)
 
 /* ---- STATUS (0x91, controller → host): State machine, latched faults and inputs. */
 #define ORB_MSG_STATUS 0x91u
-#define ORB_STATUS_SIZE 16u
+#define ORB_STATUS_SIZE 18u
 typedef struct {
     uint32_t mcu_time_us; /**< [µs] controller clock at sampling; wraps every 2³² µs */
     uint8_t state; /**< current state */
@@ -889,6 +903,7 @@ typedef struct {
     uint8_t inputs; /**< input and position flags */
     int32_t position_um; /**< [µm] encoder position from home */
     int32_t target_um; /**< [µm] end of the current motion profile */
+    uint16_t cmd_seq; /**< seq of the last acked command handled in sequence order */
 } orb_status_t;
 
 static inline size_t orb_status_encode(const orb_status_t *m, uint8_t *buf)
@@ -899,6 +914,7 @@ static inline size_t orb_status_encode(const orb_status_t *m, uint8_t *buf)
     orb_put_u8(buf + 7, m->inputs);
     orb_put_i32(buf + 8, m->position_um);
     orb_put_i32(buf + 12, m->target_um);
+    orb_put_u16(buf + 16, m->cmd_seq);
     return ORB_STATUS_SIZE;
 }
 
@@ -911,6 +927,7 @@ static inline int orb_status_decode(orb_status_t *m, const uint8_t *buf, size_t 
     m->inputs = orb_get_u8(buf + 7);
     m->position_um = orb_get_i32(buf + 8);
     m->target_um = orb_get_i32(buf + 12);
+    m->cmd_seq = orb_get_u16(buf + 16);
     return 0;
 }
 
@@ -1113,8 +1130,8 @@ static inline int orb_payload_check(uint8_t msg_id, const uint8_t *payload, size
     }
 }
 
-/* ---- CRC-16/IBM-3740: poly 0x1021, init 0xFFFF, no reflection, no xorout;
- *      check value crc("123456789") = 0x29B1 ---- */
+/* ---- CRC-16 register (CRC-16/IBM-3740): poly 0x1021, init 0xFFFF, no reflection;
+ *      check value crc("123456789") = 0x29B1. Frames add the final XOR (CRC-16/GENIBUS). ---- */
 static const uint16_t orb_crc16_table[256] = {
     0x0000u, 0x1021u, 0x2042u, 0x3063u, 0x4084u, 0x50A5u, 0x60C6u, 0x70E7u,
     0x8108u, 0x9129u, 0xA14Au, 0xB16Bu, 0xC18Cu, 0xD1ADu, 0xE1CEu, 0xF1EFu,
@@ -1233,8 +1250,8 @@ static inline size_t orb_frame_encode(uint8_t msg_id, uint16_t seq, uint8_t flag
     orb_put_u16(raw + 2, seq);
     raw[4] = msg_id;
     if (len > 0u) memcpy(raw + ORB_HEADER_SIZE, payload, len);
-    crc = orb_crc16(raw, ORB_HEADER_SIZE + len, ORB_CRC_INIT);
-    raw[ORB_HEADER_SIZE + len] = (uint8_t)(crc >> 8); /* CRC big-endian: CRC over all = 0 */
+    crc = (uint16_t)(orb_crc16(raw, ORB_HEADER_SIZE + len, ORB_CRC_INIT) ^ ORB_CRC_XOROUT);
+    raw[ORB_HEADER_SIZE + len] = (uint8_t)(crc >> 8); /* big-endian: register ends at residue */
     raw[ORB_HEADER_SIZE + len + 1u] = (uint8_t)(crc & 0xFFu);
     n = orb_cobs_encode(raw, ORB_HEADER_SIZE + len + ORB_CRC_SIZE, wire, cap - 1u);
     if (n == 0u || n + 1u > ORB_MAX_WIRE_FRAME) return 0u;
@@ -1280,7 +1297,12 @@ static inline int orb_decoder_frame(orb_decoder_t *d, orb_packet_t *pkt)
     if (n < 0) { d->drops.bad_cobs++; return 0; }
     raw_len = (size_t)n;
     if (raw_len < ORB_HEADER_SIZE + ORB_CRC_SIZE) { d->drops.bad_length++; return 0; }
-    if (orb_crc16(d->raw, raw_len, ORB_CRC_INIT) != 0u) { d->drops.bad_crc++; return 0; }
+    if (orb_crc16(d->raw, raw_len, ORB_CRC_INIT) != ORB_CRC_RESIDUE) {
+        d->drops.bad_crc++;
+        return 0;
+    }
+    /* A C controller answers HELLO of other versions as PROTOCOL.md section 7 says; this
+     * decoder keeps to its own version. */
     if (d->raw[0] != ORB_PROTOCOL_VERSION) { d->drops.bad_version++; return 0; }
     plen = raw_len - ORB_HEADER_SIZE - ORB_CRC_SIZE;
     check = orb_payload_check(d->raw[4], d->raw + ORB_HEADER_SIZE, plen);

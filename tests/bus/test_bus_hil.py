@@ -95,6 +95,9 @@ async def test_daemon_on_the_bus_and_as_opentrackio(tmp_path: Path) -> None:
             on_bus = next(p for p in bus_poses if p["frame_index"] == event["frame_index"])
             assert on_bus["T_w_c"] == event["T_w_c"]
             assert on_bus["t_ns"] == event["t_ns"]
+            assert on_bus["head_rad"] == event["head_rad"]  # pan, tilt at the exposure
+            assert len(event["head_rad"]) == 2
+            assert all(abs(a) < 3.2 for a in event["head_rad"])
         sub.undeclare()
         await wait_until(lambda: fleet.rows()[0]["link_up"] is True)
         replies = await loop.run_in_executor(

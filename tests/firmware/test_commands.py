@@ -8,9 +8,9 @@ import pytest
 
 from firmware import config
 from hil_sim.client import FrameClient
-from protocol import SCHEMA_HASH, Flag, NakCode, ParamId, State, encode_frame
+from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Flag, NakCode, ParamId, State, encode_frame
 from protocol.cobs import encode as cobs_encode
-from protocol.crc import crc16
+from protocol.crc import frame_crc
 from protocol.messages import (
     Ack,
     ClearFault,
@@ -34,8 +34,15 @@ from tests.firmware.conftest import Rig
 
 def raw_frame(msg_id: int, payload: bytes, seq: int, flags: int = Flag.ACK_REQUESTED) -> bytes:
     """A well-framed frame with any id and payload (the codec would refuse to build some)."""
-    raw = struct.pack("<BBHB", 1, flags, seq, msg_id) + payload
-    return cobs_encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00"
+    raw = struct.pack("<BBHB", PROTOCOL_VERSION, flags, seq, msg_id) + payload
+    return cobs_encode(raw + frame_crc(raw).to_bytes(2, "big")) + b"\x00"
+
+
+def take_seq(client: FrameClient) -> int:
+    """The next command seq, spent (commands run in seq order: a hand-made frame takes its turn)."""
+    seq = client.seq
+    client.seq = (seq + 1) & 0xFFFF
+    return seq
 
 
 def wait_reply(client: FrameClient, seq: int) -> object:
@@ -57,8 +64,9 @@ def test_hello_answers_identify_with_the_rig_constants(rig: Rig) -> None:
 
 
 def test_unknown_id_with_ack_requested_is_nakked(rig: Rig) -> None:
-    rig.sim.send(raw_frame(0x7E, b"\x01\x02", seq=40))
-    reply = wait_reply(rig.client, 40)
+    seq = take_seq(rig.client)
+    rig.sim.send(raw_frame(0x7E, b"\x01\x02", seq=seq))
+    reply = wait_reply(rig.client, seq)
     assert isinstance(reply, Nak)
     assert reply.code == NakCode.UNKNOWN_MESSAGE
 
@@ -71,16 +79,17 @@ def test_unknown_id_without_ack_request_is_silently_counted(rig: Rig) -> None:
 
 
 def test_controller_to_host_id_is_not_a_command(rig: Rig) -> None:
-    frame = encode_frame(Ack(1, 1), seq=42, flags=Flag.ACK_REQUESTED)
-    rig.sim.send(frame)
-    reply = wait_reply(rig.client, 42)
+    seq = take_seq(rig.client)
+    rig.sim.send(encode_frame(Ack(1, 1), seq=seq, flags=Flag.ACK_REQUESTED))
+    reply = wait_reply(rig.client, seq)
     assert isinstance(reply, Nak)
     assert reply.code == NakCode.UNKNOWN_MESSAGE
 
 
 def test_bad_payload_length_is_nakked_and_changes_nothing(rig: Rig) -> None:
-    rig.sim.send(raw_frame(0x31, struct.pack("<H", int(ParamId.WATCHDOG_MS)), seq=43))
-    reply = wait_reply(rig.client, 43)
+    seq = take_seq(rig.client)
+    rig.sim.send(raw_frame(0x31, struct.pack("<H", int(ParamId.WATCHDOG_MS)), seq=seq))
+    reply = wait_reply(rig.client, seq)
     assert isinstance(reply, Nak)
     assert reply.code == NakCode.BAD_PAYLOAD
     assert rig.sim.firmware.params.get(ParamId.WATCHDOG_MS) == 500
@@ -103,8 +112,9 @@ def test_out_of_range_fields_are_nakked(rig: Rig, msg: object) -> None:
     spec = spec_of(msg)
     values = [getattr(msg, f.name) for f in spec.fields]
     payload = struct.pack(spec.struct_format, *values)
-    rig.sim.send(raw_frame(spec.id, payload, seq=44))
-    reply = wait_reply(rig.client, 44)
+    seq = take_seq(rig.client)
+    rig.sim.send(raw_frame(spec.id, payload, seq=seq))
+    reply = wait_reply(rig.client, seq)
     assert isinstance(reply, Nak)
     assert reply.code == NakCode.OUT_OF_RANGE
     assert rig.sim.firmware.state is State.IDLE
@@ -144,7 +154,7 @@ def test_motion_in_estop_is_bad_state_naming_the_state(homed: Rig) -> None:
         assert (reply.code, reply.state) == (NakCode.BAD_STATE, State.ESTOP)
     reply = c.request(ClearFault())
     assert isinstance(reply, Ack)
-    assert reply.state == State.READY  # e-stop does not lose the reference
+    assert reply.state == State.IDLE  # the drive was off: the reference is lost, home again
 
 
 def test_home_while_homing_is_bad_state(rig: Rig) -> None:
@@ -174,11 +184,14 @@ def test_duplicate_is_answered_from_cache_not_executed(homed: Rig) -> None:
     assert again == first
     assert homed.sim.firmware.counters.duplicates == 1
     assert homed.sim.firmware.state is State.READY
-    # A different command reusing the seq (host restarted) is new: it executes.
+    # Other content under a remembered seq is not a repeat and not new: refused, nothing runs.
     c.send(MoveTo(100_000, 200_000, 500_000), seq=seq)
-    fresh = c.wait_reply(seq)
-    assert isinstance(fresh, Ack)
-    assert fresh.state == State.MOVING
+    refused = c.wait_reply(seq)
+    assert isinstance(refused, Nak)
+    assert refused.code == NakCode.STALE_SEQ
+    c.run(500)
+    assert homed.sim.firmware.state is State.READY
+    assert abs(homed.sim.firmware.position_um - pos) < 50
     assert abs(pos - 200_000) < 200
 
 
@@ -264,12 +277,12 @@ def test_hello_forgets_replies_so_a_restarted_host_reusing_seqs_is_obeyed() -> N
     sim = Simulation()
     client = FrameClient(sim)
     acked = Flag.ACK_REQUESTED
-    client.send(Hello(1, SCHEMA_HASH), flags=acked, seq=0)
+    client.send(Hello(1, SCHEMA_HASH, session_id=1), flags=acked, seq=0)
     client.send(ParamSet(1, 700), flags=acked, seq=1)
     client.send(ParamSet(1, 800), flags=acked, seq=2)
     client.run(5)
-    # The host restarts: HELLO again at seq 0, then the very same frame body at seq 1.
-    client.send(Hello(1, SCHEMA_HASH), flags=acked, seq=0)
+    # The host restarts (a new session id): HELLO again at seq 0, then the same body at seq 1.
+    client.send(Hello(1, SCHEMA_HASH, session_id=2), flags=acked, seq=0)
     client.send(ParamSet(1, 700), flags=acked, seq=1)
     replies = [p.message for p in client.run(5)]
     assert any(isinstance(r, Identify) for r in replies)

@@ -9,7 +9,7 @@ from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, ru
 
 from firmware.config import SUB_PER_STEP, counts_to_um, steps_to_um
 from protocol import Fault, ParamId, State
-from protocol.messages import Ack, Estop, Heartbeat, Jog, MoveTo, Nak, ParamSet, Stop
+from protocol.messages import Ack, Estop, Heartbeat, Home, Jog, MoveTo, Nak, ParamSet, Stop
 from protocol.messages import ClearFault as ClearFaultCmd
 from tests.firmware.conftest import Rig, home, make_rig
 
@@ -17,6 +17,9 @@ _BASE: Rig | None = None
 POSITIONS_UM = st.integers(-2_000_000, 20_000_000)
 SPEEDS_UM_S = st.integers(1, 2_000_000)
 ACCELS_UM_S2 = st.integers(1, 10_000_000)
+REHOME_UM_S = 0  # HOME_SPEED_UM_S: faster homing leaves the chain lagging at READY
+REHOME_TICKS = 60_000
+SETTLE_TICKS = 300
 TRACKING_TOLERANCE_UM = 1_000  # rotor lag + quantisation; a lost field cycle is 5 mm
 
 
@@ -63,6 +66,17 @@ class LimitMachine(RuleBasedStateMachine):
     def estop_and_clear(self) -> None:
         self.rig.client.request(Estop())
         self.rig.client.request(ClearFaultCmd())
+        # CLEAR_FAULT lands in IDLE, unhomed (PROTOCOL.md §10): without soft limits a jog could
+        # reach the hard limit, so the host homes again before anything else, as it must.
+        fw = self.rig.sim.firmware
+        assert (fw.state, fw.homed) == (State.IDLE, False)
+        assert isinstance(self.rig.client.request(Home(REHOME_UM_S)), Ack)
+        for _ in range(REHOME_TICKS // 100):
+            self.rig.client.run(100)
+            if fw.state is not State.HOMING:
+                break
+        assert fw.state is State.READY, (fw.state, fw.faults)
+        self.rig.client.run(SETTLE_TICKS)
 
     @rule(
         which=st.sampled_from([ParamId.SOFT_LIMIT_MIN_UM, ParamId.SOFT_LIMIT_MAX_UM]),

@@ -47,19 +47,31 @@ def test_rx_framer_discards_oversize_and_corrupt_frames_and_resyncs() -> None:
     assert counters.bad_crc + counters.bad_cobs == 1
 
 
-def test_tx_queue_keeps_room_for_replies_and_spends_seq_on_drops() -> None:
+def test_tx_queue_drops_oldest_telemetry_never_replies_and_spends_seq_on_drops() -> None:
+    # R-STREAM-1: a full queue sheds its oldest telemetry; replies always get a slot.
     counters = LinkCounters()
     tx = TxQueue(counters)
-    sample = EncoderSample(0, 0, 0, 0, 0)
-    for _ in range(TX_QUEUE_FRAMES):
-        tx.send(sample)
+    for t in range(TX_QUEUE_FRAMES):
+        tx.send(EncoderSample(t, 0, 0, 0, 0))
     assert len(tx) == TX_QUEUE_FRAMES - TX_REPLY_RESERVE_FRAMES
     for i in range(TX_REPLY_RESERVE_FRAMES + 2):
         tx.send(Ack(i, 1), reply=True)
     assert len(tx) == TX_QUEUE_FRAMES
     assert counters.tx_dropped == TX_REPLY_RESERVE_FRAMES + 2
-    packets = FrameDecoder().feed(tx.drain())
+    packets = FrameDecoder().feed(tx.drain(1 << 20))
     seqs = [p.seq for p in packets]
     assert seqs == sorted(seqs)
-    assert seqs[-1] == tx.seq - 1 - 2, "the two dropped replies spent the last seqs"
+    acks = [p.message for p in packets if isinstance(p.message, Ack)]
+    assert [a.req_seq for a in acks] == list(range(TX_REPLY_RESERVE_FRAMES + 2)), "no reply lost"
+    samples = [p.message.mcu_time_us for p in packets if isinstance(p.message, EncoderSample)]
+    assert samples == list(range(TX_QUEUE_FRAMES - len(samples), TX_QUEUE_FRAMES)), "oldest went"
     assert len(set(seqs)) == TX_QUEUE_FRAMES < tx.seq, "gaps let the host count losses"
+
+
+def test_tx_queue_sends_no_more_than_the_link_takes() -> None:
+    tx = TxQueue(LinkCounters())
+    for t in range(5):
+        tx.send(EncoderSample(t, 0, 0, 0, 0))
+    frame = len(tx.drain(30))
+    assert frame == 26, "one 26-byte frame fits in 30 bytes, two do not"
+    assert len(tx) == 4

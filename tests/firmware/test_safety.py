@@ -33,14 +33,18 @@ def test_watchdog_stops_motion_within_timeout_plus_stopping_distance(homed: Rig)
     decel_mm_s2 = fw.params.get(ParamId.STOP_DECEL_UM_S2) / 1000
     allowed_mm = speed_mm_s * (watchdog_ms + 2) / 1000 + speed_mm_s**2 / (2 * decel_mm_s2) + 2
     assert 0 < travelled_mm <= allowed_mm
-    # The host is back: clear, and it may move again.
+    # The host is back: clear, and home again before any absolute motion (PROTOCOL §9).
     assert isinstance(c.request(ClearFault()), Ack)
-    assert state_of(fw) is State.READY
+    assert state_of(fw) is State.IDLE
+    assert not fw.homed
 
 
-def test_watchdog_does_not_fault_a_standing_controller(homed: Rig) -> None:
-    homed.sim.step(2000)
-    assert homed.sim.firmware.faults == Fault.NONE
+def test_watchdog_faults_a_standing_controller_too(homed: Rig) -> None:
+    # PROTOCOL §9: from IDLE, HOMING, READY or MOVING; a silent host is noticed before motion.
+    fw = homed.sim.firmware
+    homed.sim.step(fw.params.get(ParamId.WATCHDOG_MS) + 2)
+    assert fw.faults == Fault.WATCHDOG
+    assert fw.state is State.FAULT
 
 
 def test_estop_input_latches_until_clear_fault(homed: Rig) -> None:
@@ -57,7 +61,7 @@ def test_estop_input_latches_until_clear_fault(homed: Rig) -> None:
     c.run(500)
     assert fw.state is State.ESTOP, "the latch outlives the input"
     assert isinstance(c.request(ClearFault()), Ack)
-    assert state_of(fw) is State.READY
+    assert state_of(fw) is State.IDLE, "the drive was off: home again"
     assert sim.plant.drive_on
 
 

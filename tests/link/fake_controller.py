@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 from host.transport.memory import Impairment, MemoryTransport
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Flag, FrameDecoder, cobs, spec_of
-from protocol.crc import crc16
+from protocol.crc import frame_crc
 from protocol.enums import State, Stream
 from protocol.messages import (
     Ack,
@@ -189,7 +189,7 @@ def unchecked_frame(message: object, seq: int) -> bytes:
     values = [getattr(message, f.name) for f in dataclasses.fields(message)]  # type: ignore[arg-type]
     raw = struct.pack(HEADER_FORMAT, PROTOCOL_VERSION, 0, seq, spec.id)
     raw += struct.pack(spec.struct_format, *values)
-    raw += crc16(raw).to_bytes(2, "big")
+    raw += frame_crc(raw).to_bytes(2, "big")
     return bytes(cobs.encode(raw)) + b"\x00"
 
 

@@ -15,7 +15,7 @@ from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
 from protocol import PROTOCOL_VERSION, SCHEMA, cobs
-from protocol.crc import crc16
+from protocol.crc import frame_crc
 from protocol.enums import NakCode, State, Stream
 from protocol.messages import MoveTo, Status, StreamSet
 from tests.link.fake_controller import FakeController
@@ -166,8 +166,8 @@ async def test_unknown_state_in_status_does_not_break_the_snapshot(rig) -> None:
     fake, ctrl, _ = rig
     # A newer firmware's state and fault bit: out of our encoder's range, so built by hand.
     raw = struct.pack("<BBHB", PROTOCOL_VERSION, 0, 1234, SCHEMA.by_cls[Status].id)
-    raw += struct.pack("<IBHBii", 0, 99, 0x4000, 0x10, 1000, 1000)
-    fake.transport.inject(cobs.encode(raw + crc16(raw).to_bytes(2, "big")) + b"\x00")
+    raw += struct.pack("<IBHBiiH", 0, 99, 0x4000, 0x10, 1000, 1000, 0)
+    fake.transport.inject(cobs.encode(raw + frame_crc(raw).to_bytes(2, "big")) + b"\x00")
     await asyncio.sleep(0.01)
     snap = ctrl.snapshot()
     assert snap.state == 99

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import struct
 from collections.abc import AsyncIterator
 
 import pytest
@@ -18,9 +19,21 @@ from host.link.common import (
 from host.link.session import Session, SessionConfig
 from host.transport.base import TransportError
 from host.transport.memory import Impairment
-from protocol import PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder, encode_frame
+from protocol import PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder, cobs, encode_frame
+from protocol.compat import encode_v1
+from protocol.crc import frame_crc
 from protocol.enums import NakCode, State
-from protocol.messages import Ack, ClockSync, ClockSyncReply, ParamSet, Stop
+from protocol.messages import (
+    Ack,
+    ClockSync,
+    ClockSyncReply,
+    HeadSet,
+    Identify,
+    ParamGet,
+    ParamSet,
+    ParamValue,
+    Stop,
+)
 from tests.link.fake_controller import FakeController
 
 FAST = SessionConfig(rto_initial_s=0.02, rto_min_s=0.02, rto_max_s=0.2, max_tries=12)
@@ -180,7 +193,8 @@ async def test_window_is_respected(fake: FakeController) -> None:
     # which the fake would count as one more command in flight.
     session = await start(fake, SessionConfig(rto_initial_s=1.0, rto_min_s=0.5))
     await session.handshake()
-    await asyncio.gather(*(session.request(Stop()) for _ in range(20)))
+    # Not STOP: stops bypass the window (they run on arrival, PROTOCOL §6).
+    await asyncio.gather(*(session.request(HeadSet(0, 0)) for _ in range(20)))
     await session.stop()
     assert fake.max_inflight_seen == 6  # (2 · rx_window + 1) // 2: see Session._window_open
 
@@ -388,3 +402,69 @@ async def test_a_retransmission_whose_send_loses_the_link_fails_the_command_once
     finally:
         loop.set_exception_handler(None)
     assert errors == []
+
+
+# ---- a newer controller: unknown codes, states, flags and ids (PROTOCOL.md §2) -----------
+
+
+def _raw_wire(msg_id: int, payload: bytes, seq: int = 900, flags: int = 0) -> bytes:
+    """A well-framed controller frame with any id and payload (beyond what our encoder allows)."""
+    raw = struct.pack("<BBHB", PROTOCOL_VERSION, flags, seq, msg_id) + payload
+    return cobs.encode(raw + frame_crc(raw).to_bytes(2, "big")) + b"\x00"
+
+
+async def test_unknown_nak_code_fails_the_command_at_once_with_its_number(
+    fake: FakeController, caplog: pytest.LogCaptureFixture
+) -> None:
+    session = await start(fake, SessionConfig(rto_initial_s=1.0, rto_min_s=1.0))
+    await session.handshake()
+    fake.silent = True
+    task = asyncio.create_task(session.request(ParamGet(1)))
+    await asyncio.sleep(0.02)
+    (seq,) = session._inflight
+    assert fake.transport is not None
+    t0 = asyncio.get_running_loop().time()
+    fake.transport.inject(_raw_wire(0x82, struct.pack("<HBB", seq, 200, 77)))
+    with pytest.raises(ControllerRejected) as info:
+        await task
+    waited_s = asyncio.get_running_loop().time() - t0
+    await session.stop()
+    assert waited_s < 0.5, "failed at once, not after the retransmissions"
+    assert (info.value.code, info.value.state) == (200, 77)
+    assert "rejected: 200 in state 77" in str(info.value)
+    assert "unknown NAK code 200" in caplog.text
+
+
+async def test_unknown_ids_flags_and_reserved_values_never_break_the_session(
+    fake: FakeController, caplog: pytest.LogCaptureFixture
+) -> None:
+    session = await start(fake)
+    await session.handshake()
+    assert fake.transport is not None
+    for _ in range(3):  # logged once each, however often they come
+        fake.transport.inject(_raw_wire(0xEE, b"\x01\x02\x03"))  # an id from a newer schema
+        fake.transport.inject(_raw_wire(0x02, struct.pack("<I", 5), flags=0xF0))  # HEARTBEAT
+    reply = await session.request(ParamSet(1, 700))  # the session still works
+    await session.stop()
+    assert reply.message == ParamValue(reply.message.req_seq, 1, 700)  # type: ignore[attr-defined]
+    assert session._decoder.drops.unknown_id == 3
+    assert caplog.text.count("unknown message id 238") == 1
+    assert caplog.text.count("unknown header flag bits 240") == 1
+
+
+async def test_a_version_1_controller_is_refused_with_its_version_shown(
+    fake: FakeController,
+) -> None:
+    # A v1 controller frames IDENTIFY with the old CRC and without capabilities: still read.
+    session = await start(fake)
+    fake.silent = True
+    task = asyncio.create_task(session.handshake())
+    await asyncio.sleep(0.02)
+    (seq,) = session._inflight
+    ident = Identify(seq, 1, 0x1A2B3C4D, 0x000200, 9, 4000, 3200, 20, 12_700, 10**6, 84, 8, 1)
+    assert fake.transport is not None
+    fake.transport.inject(encode_v1(ident, 0, 0))
+    with pytest.raises(ProtocolMismatch) as info:
+        await task
+    await session.stop()
+    assert "controller speaks version 1 schema 0x1A2B3C4D" in str(info.value)

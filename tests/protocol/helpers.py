@@ -12,7 +12,8 @@ from typing import Any
 from hypothesis import strategies as st
 
 from protocol import cobs
-from protocol.crc import crc16
+from protocol.compat import HANDSHAKE_IDS
+from protocol.crc import frame_crc
 from protocol.framing import encode_frame
 from protocol.schema import (
     HEADER_FORMAT,
@@ -39,6 +40,9 @@ def _utf8_fits(limit: int) -> st.SearchStrategy[str]:
     return st.text(max_size=limit).filter(lambda s: len(s.encode("utf-8")) <= limit)
 
 
+ACK_ID = 0x81
+
+
 def message_strategy(spec: MessageSpec) -> st.SearchStrategy[Any]:
     """Any valid instance of one message, fields drawn from their declared bounds."""
     kwargs: dict[str, st.SearchStrategy[Any]] = {}
@@ -53,7 +57,7 @@ def message_strategy(spec: MessageSpec) -> st.SearchStrategy[Any]:
 def raw_frame(msg_id: int, payload: bytes, seq: int = 7, version: int = PROTOCOL_VERSION) -> bytes:
     """Header, payload and a correct CRC, before COBS: lets tests build any header."""
     raw = struct.pack(HEADER_FORMAT, version, 0, seq, msg_id) + payload
-    return raw + crc16(raw).to_bytes(2, "big")
+    return raw + frame_crc(raw).to_bytes(2, "big")
 
 
 def wire(raw: bytes) -> bytes:
@@ -137,10 +141,12 @@ def _bad_length(rng: random.Random, vec: dict[str, Any]) -> tuple[bytes, str | N
 
 
 def _bad_version(rng: random.Random, vec: dict[str, Any]) -> tuple[bytes, str | None]:
-    """A well-formed frame of another protocol version."""
+    """A well-formed frame of another protocol version (not HELLO/IDENTIFY: those are read)."""
     version = rng.choice([v for v in range(256) if v != PROTOCOL_VERSION])
-    payload = bytes.fromhex(vec["payload_hex"])
-    return wire(raw_frame(vec["id"], payload, version=version)), "bad_version"
+    msg_id, payload = vec["id"], bytes.fromhex(vec["payload_hex"])
+    if msg_id in HANDSHAKE_IDS:
+        msg_id, payload = ACK_ID, b"\x01\x00\x01"
+    return wire(raw_frame(msg_id, payload, version=version)), "bad_version"
 
 
 def _unknown_id(rng: random.Random, vec: dict[str, Any]) -> tuple[bytes, str | None]:

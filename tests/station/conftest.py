@@ -96,6 +96,7 @@ class StationRig:
     sim: subprocess.Popen[bytes]
     daemon: subprocess.Popen[bytes] | None = None
     logs: list[Path] = field(default_factory=list)
+    extra_config: str = ""  # more TOML for the daemon (e.g. a [bus] section)
 
     @property
     def socket(self) -> str:
@@ -117,7 +118,7 @@ class StationRig:
         text = CONFIG.format(
             dir=self.dir, port=self.port, operator=OPERATOR_TOKEN, viewer=VIEWER_TOKEN
         )
-        config.write_text(text)
+        config.write_text(text + self.extra_config)
         (self.dir / "rig.toml").write_text(RIG)  # the rig file CONFIG's [rig] path names
         env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC")}
         log = self.dir / f"daemon-{len(self.logs)}.log"

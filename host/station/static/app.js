@@ -294,6 +294,33 @@ $("plan").addEventListener("pointerup", (ev) => {
 
 // ---- status --------------------------------------------------------------------------------
 
+// The hall's rigs from the bus (null: this daemon is not on a bus, the panel stays hidden).
+function showHall(rigs) {
+  $("hall-panel").hidden = !rigs;
+  if (!rigs) return;
+  const table = $("hall"); table.replaceChildren();
+  const head = document.createElement("tr");
+  for (const h of ["rig", "", "state", "position", "link", "age"]) {
+    const th = document.createElement("th"); th.textContent = h; head.append(th);
+  }
+  table.append(head);
+  for (const r of rigs) {
+    const cells = [
+      [r.self ? `${r.rig} (this rig)` : r.rig, ""],
+      [r.alive ? "alive" : "gone", r.alive ? "ok" : "bad"],
+      [r.state ?? "—", r.state === "FAULT" || r.state === "ESTOP" ? "bad" : ""],
+      [fmt(r.position_mm, 1, " mm"), ""],
+      [r.link_up === true ? "up" : r.link_up === false ? "down" : "—", r.link_up === false ? "bad" : ""],
+      [fmt(r.age_s, 1, " s"), ""],
+    ];
+    const tr = document.createElement("tr"); tr.dataset.rig = r.rig;
+    for (const [text, cls] of cells) {
+      const td = document.createElement("td"); td.textContent = text; if (cls) td.className = cls; tr.append(td);
+    }
+    table.append(tr);
+  }
+}
+
 const fmt = (v, digits = 1, unit = "") => (v === null || v === undefined || Number.isNaN(v) ? "—" : `${Number(v).toFixed(digits)}${unit}`);
 const deg = (rad) => (rad === null || rad === undefined ? null : (rad * 180) / Math.PI);
 
@@ -337,6 +364,7 @@ function onStatus(msg) {
   const faults = (ctrl.fault_names || []).join(", ");
   $("motion-state").textContent = latched ? `${ctrl.state} LATCHED (${faults}): Clear releases` : ctrl.state || "";
   $("motion-state").classList.toggle("latched", latched);
+  showHall(msg.hall);
   showTrolley(link.track_s_mm ?? (ctrl.position_mm ?? null));
   if (!drag && head[0] !== null && document.activeElement !== $("pan") && document.activeElement !== $("tilt")) {
     $("pan").value = deg(head[0]); $("tilt").value = deg(head[1]); showHead(deg(head[0]), deg(head[1]));
