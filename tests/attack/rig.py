@@ -20,18 +20,19 @@ from typing import Any
 
 import msgpack
 
+RIG = (
+    "[track.home]\nvalue_mm = 150.0\n[track.marks]\ns_mm = [250.0, 400.0]\n[camera]\nfps = {fps}\n"
+)
 CONFIG = """
 [link]
 kind = "serial"
 url = "{dir}/sim"
 baud = 115200
 heartbeat_ms = 100
-[track]
-home_s_mm = 150.0
-reference_marks_mm = [250.0, 400.0]
+[rig]
+path = "{dir}/rig.toml"
 [camera]
 source = "none"
-fps = {fps}
 [control]
 socket_path = "{dir}/ctl.sock"
 {control}
@@ -74,7 +75,8 @@ class Rig:
     def __init__(self, dir: Path, control: str = "", extra: str = "", fps: float = 20.0) -> None:
         self.dir = dir
         self.config = dir / "orbitar.toml"
-        self.config.write_text(CONFIG.format(dir=dir, control=control, extra=extra, fps=fps))
+        self.config.write_text(CONFIG.format(dir=dir, control=control, extra=extra))
+        (Path(dir) / "rig.toml").write_text(RIG.format(fps=fps))  # CONFIG's [rig] path
         self.sim: subprocess.Popen[str] | None = None
         self.daemon: subprocess.Popen[bytes] | None = None
 
