@@ -18,7 +18,7 @@ POSITIONS_UM = st.integers(-2_000_000, 20_000_000)
 SPEEDS_UM_S = st.integers(1, 2_000_000)
 ACCELS_UM_S2 = st.integers(1, 10_000_000)
 REHOME_UM_S = 0  # HOME_SPEED_UM_S: faster homing leaves the chain lagging at READY
-REHOME_TICKS = 60_000
+REHOME_TICKS = 60_000  # beyond the travel back to the switch: back-off, index search
 SETTLE_TICKS = 300
 TRACKING_TOLERANCE_UM = 1_000  # rotor lag + quantisation; a lost field cycle is 5 mm
 
@@ -71,7 +71,10 @@ class LimitMachine(RuleBasedStateMachine):
         fw = self.rig.sim.firmware
         assert (fw.state, fw.homed) == (State.IDLE, False)
         assert isinstance(self.rig.client.request(Home(REHOME_UM_S)), Ack)
-        for _ in range(REHOME_TICKS // 100):
+        # Homing runs back to the switch at HOME_SPEED from wherever the trolley stands.
+        speed_um_s = fw.params.get(ParamId.HOME_SPEED_UM_S)
+        travel_ticks = abs(fw.position_um) * 1000 // max(speed_um_s, 1)
+        for _ in range((REHOME_TICKS + travel_ticks) // 100):
             self.rig.client.run(100)
             if fw.state is not State.HOMING:
                 break
