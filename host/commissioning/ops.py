@@ -200,8 +200,9 @@ async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
 async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Start the acceptance test: predicted against measured corners from new poses."""
-    T_w_b, _ = board_pose(args)
+    T_w_b, cov_b = board_pose(args)
     spec = board_spec(args)
+    env = env_of(ctx)
     limit = args.get("max_rms_px", 1.0)
     if not _finite(limit) or not 0.0 < limit <= 10.0:
         raise OpError("bad_args", f"max_rms_px = {limit!r}: expected a number in (0, 10]")
@@ -210,6 +211,9 @@ async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         views: list[Any], rig: Any, camera: Any
     ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
         out = head_run.check_views(views, rig, camera, T_w_b, float(limit))
+        budget = env.budget()
+        if budget is not None:
+            out = head_run.with_prediction(out, budget[0], T_w_b, cov_b)
         return out.summary(), head_run.check_page(out, float(limit)), {}
 
     return _start_capture_run(

@@ -72,7 +72,7 @@ class SimBoardLoop:
     board: PlacedBoard
     clock: FrameClock
     blur_mm: float = 0.0  # smear every frame by this much camera motion (a shaking mount)
-    home_s_mm: float = 150.0  # true arc length of the controller's zero (the rig file: 150 ± 1)
+    home_s_mm: float = 0.0  # true arc length of the controller's zero
     frame_tap: FrameTap = field(init=False)
     frames: int = 0
 
@@ -135,7 +135,8 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     placed = PlacedBoard(BOARD.make(), board_pose(rng))
     fake = FakeController()
     sim = SyntheticCamera(lens, seed=seed, blur_samples=4)
-    home = 150.0 + float(rng.normal(0.0, 0.3))  # surveyed to ~1 mm: RigSpec() says 150
+    # where the home switch truly is: the rig file's survey, off by its σ
+    home = RigSpec().track.home.value + float(rng.normal(0.0, 0.3))
     loop = SimBoardLoop(fake, rig, sim, placed, FrameClock(seed=seed), blur_mm, home)
     rig_path = tmp / "rig.toml"
     save_rig(RigSpec(), rig_path)
