@@ -145,4 +145,5 @@ async def test_commissioning_sequence_recovers_the_chain_within_three_sigma(
     assert spec.head.m_cr.provenance.method.startswith("calibrate head")
     assert results["calibrate_check"]["rms_px"] < 1.0
     check = results["calibrate_check"]
-    print(f"seed {seed}: check RMS {check['rms_px']:.3f} px, predicted {check['predicted_sigma_px']}")
+    # without cross-covariances in the rig file the budget is an upper bound (COMMISSIONING.md)
+    assert check["predicted_sigma_px"] >= check["rms_px"]
