@@ -2,8 +2,9 @@
 
 Run: python benchmarks/bench_service.py [--requests N] [--subscribers S] [--poses P]
 Prints `metric: value` lines. Peers side by side: a status round trip over the Unix socket
-beside a bare msgpack echo over the same kind of socket (the floor any client sees), and
-recording writes beside a plain msgpack dump of the same records into memory.
+beside a bare msgpack echo over the same kind of socket (the floor any client sees), recording
+writes beside a plain msgpack dump of the same records into memory, and the daemon's memory
+growth under a client that floods requests and never reads beside one that reads its replies.
 """
 
 from __future__ import annotations
@@ -11,8 +12,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import io
+import socket
 import statistics
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -92,6 +95,82 @@ async def _fan_out(server: ControlServer, subscribers: int, poses: int) -> tuple
     return publish_s / poses * 1e6, poses * subscribers / elapsed
 
 
+FLOOD_BYTES = 16 * 1024 * 1024
+FLOOD_S = 5.0
+
+
+def _rss_kb() -> int:
+    """This process's resident set size, kB (Linux)."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def _drain(sock: socket.socket) -> None:
+    """Read and discard until the socket ends."""
+    while True:
+        try:
+            if not sock.recv(65536):
+                return
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+
+
+def _flood(path: str, read_replies: bool, out: dict[str, float]) -> None:
+    """Send `status` requests for FLOOD_BYTES or FLOOD_S; read the replies or never read them."""
+    sock = socket.socket(socket.AF_UNIX)
+    sock.connect(path)
+    sock.settimeout(0.2)
+    if read_replies:
+        threading.Thread(target=_drain, args=(sock,), daemon=True).start()
+    chunk = b"".join(pack({"id": i, "op": "status"}) for i in range(2000))
+    sent, t0 = 0, time.perf_counter()
+    try:
+        while sent < FLOOD_BYTES and time.perf_counter() - t0 < FLOOD_S:
+            try:
+                sock.sendall(chunk)
+                sent += len(chunk)
+            except TimeoutError:
+                continue  # the server stopped reading us: back-pressure
+    except (BrokenPipeError, ConnectionResetError):
+        out["cut_off_s"] = time.perf_counter() - t0
+    out["sent_mb"] = sent / 2**20
+    sock.close()
+
+
+async def _flood_growth(path: str, read_replies: bool) -> dict[str, float]:
+    """Peak RSS growth of this process (the server's side) while one client floods it."""
+    out: dict[str, float] = {}
+    before = _rss_kb()
+    peak = before
+    flood = asyncio.ensure_future(asyncio.to_thread(_flood, path, read_replies, out))
+    while not flood.done():
+        peak = max(peak, _rss_kb())
+        await asyncio.sleep(0.02)
+    await flood
+    out["growth_mb"] = (peak - before) / 1024
+    return out
+
+
+async def _flood_metrics() -> None:
+    """A client that never reads beside one that reads, against the same server."""
+    with tempfile.TemporaryDirectory() as tmp:
+        config = ControlConfig(socket_path=f"{tmp}/f.sock", stall_timeout_s=1.0)
+        server = ControlServer(OpContext(None), config)
+        await server.start()
+        reading = await _flood_growth(config.socket_path, read_replies=True)
+        silent = await _flood_growth(config.socket_path, read_replies=False)
+        await server.close()
+    print(f"control_nonreading_client_rss_growth_mb: {silent['growth_mb']:.1f}")
+    print(f"control_nonreading_client_sent_mb: {silent['sent_mb']:.1f}")
+    print(f"control_nonreading_client_cut_off_s: {silent.get('cut_off_s', float('nan')):.2f}")
+    print(f"peer_reading_client_rss_growth_mb: {reading['growth_mb']:.1f}")
+    print(f"peer_reading_client_sent_mb: {reading['sent_mb']:.1f}")
+
+
 async def _socket_metrics(args: argparse.Namespace) -> None:
     """Everything that needs the event loop."""
     with tempfile.TemporaryDirectory() as tmp:
@@ -148,6 +227,7 @@ def main() -> None:
     parser.add_argument("--poses", type=int, default=3000)
     args = parser.parse_args()
     asyncio.run(_socket_metrics(args))
+    asyncio.run(_flood_metrics())
     print(f"freed_poses_encoded_per_s: {_freed_rate(50_000):.0f}")
     write_rate, read_rate, peer_rate = _recording_rates(100_000)
     print(f"recording_pose_writes_per_s: {write_rate:.0f}")

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+from host.bus import fleet
 from host.commissioning import cli as commissioning_cli
 from host.control import cli_commands
 from host.demo import run as demo_run
@@ -32,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     commissioning_cli.add_parsers(sub)
     rig_cli.add_parser(sub)
     _add_sim_parser(sub)
+    fleet.add_parser(sub)
     return parser
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from host.config_bus import BusConfig, bus_problems
 from host.config_fields import (
     ConfigError,
     parse_destination,
@@ -27,10 +28,12 @@ from host.config_fields import (
     parse_vector3,
     spec,
 )
+from host.config_opentrackio import OpenTrackIOConfig, opentrackio_problems
 from host.config_rig import RigConfig
 
 LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
+MIN_TOKEN_CHARS = 16  # control tokens: long enough that guessing through hello is hopeless
 XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
 
 
@@ -110,6 +113,7 @@ class OutputsConfig:
     """Every output of the daemon."""
 
     freed: FreedConfig = field(default_factory=FreedConfig)
+    opentrackio: OpenTrackIOConfig = field(default_factory=OpenTrackIOConfig)
 
 
 @dataclass(frozen=True)
@@ -126,6 +130,26 @@ class ControlConfig:
     viewer_token: str = spec("", doc="TCP token granting read-only access")
     queue_max: int = spec(
         256, lo=1, hi=100_000, doc="events buffered per subscriber before the oldest are dropped"
+    )
+    max_unix_connections: int = spec(16, lo=1, hi=1000, doc="clients at once on the Unix socket")
+    max_tcp_connections: int = spec(32, lo=1, hi=1000, doc="clients at once on TCP")
+    hello_timeout_s: float = spec(
+        10.0, lo=0.1, hi=3600.0, doc="a TCP client without a successful hello is cut off after"
+    )
+    idle_timeout_s: float = spec(
+        600.0,
+        lo=1.0,
+        hi=86400.0,
+        doc="a client sending nothing and subscribed to nothing is cut off after",
+    )
+    client_buffer_kb: int = spec(
+        2048,
+        lo=256,
+        hi=1_048_576,
+        doc="replies queued for a client that does not read before it is cut off",
+    )
+    stall_timeout_s: float = spec(
+        30.0, lo=0.1, hi=3600.0, doc="a client whose replies do not drain is cut off after"
     )
 
 
@@ -170,6 +194,7 @@ class Config:
     outputs: OutputsConfig = field(default_factory=OutputsConfig)
     control: ControlConfig = field(default_factory=ControlConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
+    bus: BusConfig = field(default_factory=BusConfig)
     log: LogConfig = field(default_factory=LogConfig)
     systemd: SystemdConfig = field(default_factory=SystemdConfig)
 
@@ -292,8 +317,14 @@ def _check_type(hint: Any, value: Any) -> Any:
 def _cross_checks(config: Config, table: Mapping[str, Any]) -> list[str]:
     """Rules that span several keys."""
     errors = []
+    errors += opentrackio_problems(config.outputs.opentrackio)
+    errors += bus_problems(config.bus)
     if config.control.tcp_enabled and not config.control.operator_token:
         errors.append("control.operator_token: required when control.tcp_enabled = true")
+    for key in ("operator_token", "viewer_token"):
+        if 0 < (n := len(getattr(config.control, key))) < MIN_TOKEN_CHARS:
+            hint = "python3 -c 'import secrets; print(secrets.token_urlsafe(24))' makes one"
+            errors.append(f"control.{key}: {n} characters, need {MIN_TOKEN_CHARS} or more ({hint})")
     return errors
 
 

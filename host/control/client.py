@@ -125,7 +125,10 @@ class ControlClient:
                 self._events.get_nowait()  # keep the newest, like the server does
             self._events.put_nowait(message)
             return
-        future = self._pending.get(message.get("id"))  # type: ignore[arg-type]
+        request_id = message.get("id")  # ours are ints; a raw request may have used anything
+        future = None
+        if isinstance(request_id, int) and not isinstance(request_id, bool):
+            future = self._pending.get(request_id)
         if future is not None and not future.done():
             future.set_result(message)
         else:

@@ -1,12 +1,18 @@
-"""The control operations: argument checks and calls into the controller (docs/CONTROL.md).
+"""The control operations: argument checks, role checks and calls into the controller.
 
-Each op is a row of `OPS`: its handler and whether it needs the operator role. Handlers check
-their arguments before anything reaches the controller, so a bad request never moves the
-trolley; a controller failure becomes a `failed` error carrying the controller's message.
+Each op is a row of `OPS`: its handler and the least role that may run it. `dispatch` is the one
+way in for every caller (the control socket, the CLI through it, the operator station): it takes
+a role, an op name and its arguments and returns a reply body, never raising for a bad request
+or a controller failure. Handlers check their arguments before anything reaches the controller,
+so a bad request never moves the trolley. STOP and ESTOP run for any authenticated role and say
+in their reply what happened, including, while the link is down, that the controller's own
+watchdog is what stops the trolley (docs/CONTROL.md).
 """
 
 from __future__ import annotations
 
+import contextlib
+import enum
 import math
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
@@ -19,12 +25,39 @@ MAX_SPEED_MM_S = 2000.0  # the wire's MAX_SPEED ceiling, 2 m/s
 MAX_POSITION_MM = 1e6
 
 
-class OpError(Exception):
-    """A request that cannot be served; `code` goes into the error reply."""
+SAFETY_OPS = frozenset({"stop", "estop"})  # any role, past every per-client limit
+WATCHDOG_DEFAULT_MS = PARAMS_BY_ID[ParamId.WATCHDOG_MS].default
 
-    def __init__(self, code: str, message: str) -> None:
+
+class Role(enum.Enum):
+    """What a client may do; a higher role may do everything a lower one may."""
+
+    NONE = "none"  # TCP client before a successful hello
+    VIEWER = "viewer"  # read-only ops, subscriptions, stop and estop
+    OPERATOR = "operator"  # everything, motion included
+
+    def allows(self, least: Role) -> bool:
+        """True if this role may run what needs `least`."""
+        return _RANK[self] >= _RANK[least]
+
+
+_RANK = {Role.NONE: 0, Role.VIEWER: 1, Role.OPERATOR: 2}
+
+
+class OpError(Exception):
+    """A request that cannot be served; `code` and `detail` go into the error reply."""
+
+    def __init__(self, code: str, message: str, detail: dict[str, Any] | None = None) -> None:
         super().__init__(message)
         self.code = code
+        self.detail = detail
+
+    def reply(self) -> dict[str, Any]:
+        """The error as a reply body."""
+        error: dict[str, Any] = {"code": self.code, "message": str(self)}
+        if self.detail:
+            error["detail"] = self.detail
+        return {"ok": False, "error": error}
 
 
 @dataclass
@@ -37,6 +70,8 @@ class OpContext:
     calibration: Callable[[], Mapping[str, Any]] = dict
     pan_limits_rad: tuple[float, float] = (-math.pi, math.pi)
     tilt_limits_rad: tuple[float, float] = (-math.pi / 2, math.pi / 2)
+    watchdog_ms: int | None = None  # the controller's WATCHDOG_MS, once read or written here
+    control_stats: Callable[[], Mapping[str, Any]] = dict  # the control server's counters
     commissioning: Any = None  # host.commissioning.env.CommissioningEnv (docs/COMMISSIONING.md)
 
 
@@ -85,6 +120,7 @@ async def op_status(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         "link_up": connected,
         "controller": state,
         "pose": None if pose is None else pose.to_dict(),
+        "control": dict(ctx.control_stats()),
     }
 
 
@@ -124,17 +160,55 @@ async def op_jog(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
 
 async def op_stop(ctx: OpContext, args: Mapping[str, Any]) -> Any:
-    """Controlled stop."""
-    cancel_runs(ctx, "STOP")  # first, so a calibration run cannot command a motion after it
-    await _controller(ctx).stop()
-    return None
+    """Controlled stop; the reply says whether the controller acknowledged it."""
+    return await _safety(ctx, "stop")
 
 
 async def op_estop(ctx: OpContext, args: Mapping[str, Any]) -> Any:
-    """Emergency stop."""
-    cancel_runs(ctx, "ESTOP")
-    await _controller(ctx).estop()
-    return None
+    """Emergency stop; the reply says whether the controller acknowledged it."""
+    return await _safety(ctx, "estop")
+
+
+async def _safety(ctx: OpContext, op: str) -> dict[str, Any]:
+    """Send stop/estop, or explain who stops the trolley when it cannot be sent."""
+    cancel_runs(ctx, op.upper())  # first, so a calibration run cannot command a motion after it
+    controller = ctx.controller
+    watchdog_ms, known = _watchdog_ms(ctx)
+    detail: dict[str, Any] = {"sent": False, "acked": False, "watchdog_ms": watchdog_ms}
+    detail["watchdog_known"] = known
+    period = f"{watchdog_ms} ms" if known else f"{watchdog_ms} ms, the default, unless changed"
+    if controller is None or not controller.connected:
+        why = "no controller is configured" if controller is None else "the controller link is down"
+        raise OpError(
+            "unavailable",
+            f"{op} not sent: {why}; the controller's own watchdog stops the trolley "
+            f"(controlled stop, WATCHDOG fault) within WATCHDOG_MS ({period}) of the last frame "
+            "it received from the host; use the hardware e-stop if it still moves",
+            detail,
+        )
+    try:
+        await (controller.estop() if op == "estop" else controller.stop())
+    except Exception as exc:  # a NAK or a lost ACK: say so, with what the operator can do
+        detail["sent"] = True
+        raise OpError(
+            "failed",
+            f"{op} sent but not acknowledged: {type(exc).__name__}: {exc}; "
+            "repeat it, or use the hardware e-stop",
+            detail,
+        ) from exc
+    return {"sent": True, "acked": True}
+
+
+def _watchdog_ms(ctx: OpContext) -> tuple[int, bool]:
+    """The controller's watchdog period and whether it is known (else the protocol default)."""
+    if ctx.watchdog_ms is not None:
+        return ctx.watchdog_ms, True
+    if ctx.controller is not None:
+        with contextlib.suppress(Exception):  # a snapshot must never hide the stop's answer
+            value = ctx.controller.snapshot().get("watchdog_ms")
+            if isinstance(value, int) and not isinstance(value, bool) and value > 0:
+                return value, True
+    return WATCHDOG_DEFAULT_MS, False
 
 
 async def op_clear(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -155,6 +229,8 @@ async def op_param_get(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Read one parameter."""
     pid = param_id(args)
     value = await _controller(ctx).get_param(pid)
+    if pid is ParamId.WATCHDOG_MS:
+        ctx.watchdog_ms = int(value)
     return {"param": pid.name, "value": int(value), "unit": PARAMS_BY_ID[pid].unit}
 
 
@@ -168,6 +244,8 @@ async def op_param_set(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     if not spec.lo <= value <= spec.hi:
         raise OpError("out_of_range", f"{pid.name} = {value}: outside [{spec.lo}, {spec.hi}]")
     await _controller(ctx).set_param(pid, value)
+    if pid is ParamId.WATCHDOG_MS:
+        ctx.watchdog_ms = value
     return {"param": pid.name, "value": value}
 
 
@@ -177,22 +255,47 @@ async def op_param_persist(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     return None
 
 
-# op name → (handler, needs the operator role)
-OPS: dict[str, tuple[Handler, bool]] = {
-    "status": (op_status, False),
-    "link_stats": (op_link_stats, False),
-    "calibration": (op_calibration, False),
-    "param_get": (op_param_get, False),
-    "home": (op_home, True),
-    "move": (op_move, True),
-    "jog": (op_jog, True),
-    "stop": (op_stop, True),
-    "estop": (op_estop, True),
-    "clear": (op_clear, True),
-    "head": (op_head, True),
-    "param_set": (op_param_set, True),
-    "param_persist": (op_param_persist, True),
+# op name → (handler, the least role that may run it)
+OPS: dict[str, tuple[Handler, Role]] = {
+    "status": (op_status, Role.VIEWER),
+    "link_stats": (op_link_stats, Role.VIEWER),
+    "calibration": (op_calibration, Role.VIEWER),
+    "param_get": (op_param_get, Role.VIEWER),
+    "stop": (op_stop, Role.VIEWER),
+    "estop": (op_estop, Role.VIEWER),
+    "home": (op_home, Role.OPERATOR),
+    "move": (op_move, Role.OPERATOR),
+    "jog": (op_jog, Role.OPERATOR),
+    "clear": (op_clear, Role.OPERATOR),
+    "head": (op_head, Role.OPERATOR),
+    "param_set": (op_param_set, Role.OPERATOR),
+    "param_persist": (op_param_persist, Role.OPERATOR),
 }
+
+
+async def dispatch(ctx: OpContext, role: Role, op: Any, args: Any) -> dict[str, Any]:
+    """Run one op for a caller of `role`: {"ok": true, "result"} or {"ok": false, "error"}."""
+    try:
+        return {"ok": True, "result": await _run(ctx, role, op, args)}
+    except OpError as exc:
+        return exc.reply()
+    except Exception as exc:  # a controller failure must not reach the caller as an exception
+        return OpError("failed", f"{type(exc).__name__}: {exc}").reply()
+
+
+async def _run(ctx: OpContext, role: Role, op: Any, args: Any) -> Any:
+    """Check the request and the role, then call the handler."""
+    if not isinstance(op, str) or not isinstance(args, Mapping):
+        raise OpError("bad_request", 'a request needs a string "op" and a map "args"')
+    if role is Role.NONE:
+        raise OpError("unauthorized", 'send "hello" with a token first')
+    if op not in OPS:
+        raise OpError("unknown_op", f"unknown op {op!r}")
+    handler, least = OPS[op]
+    if not role.allows(least):
+        raise OpError("forbidden", f"{op!r} needs the {least.value} role")
+    return await handler(ctx, args)
+
 
 # The commissioning runs (calibrate_*, survey_*): their own module, joined to the table here.
 from host.commissioning.ops import COMMISSIONING_OPS, cancel_runs  # noqa: E402

@@ -4,13 +4,18 @@ Every client has a writer task fed by two queues: replies, which are never dropp
 a bounded deque that drops the oldest event when the client reads too slowly. `publish` only
 appends to deques, so the frame loop that calls it never waits on a client. Requests run as
 tasks of their own, so a `stop` is not queued behind a long `home`.
+
+Nothing a client does may exhaust the daemon: a client whose replies pile up is not read until
+they drain (its own sends then block in the kernel) and is cut off when they pass
+`client_buffer_kb` or do not drain within `stall_timeout_s`; each listener has its own cap on
+connections, so a TCP flood never takes the operator's Unix-socket slots; unauthenticated and
+idle connections time out; failed hellos are throttled and logged a bounded number of times.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import enum
 import grp
 import hmac
 import logging
@@ -18,29 +23,32 @@ import os
 import shutil
 import socket
 import stat
+import time
 from collections import deque
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from host.config import ControlConfig
-from host.control.ops import OPS, OpContext, OpError
-from host.control.wire import WireError, error_reply, ok_reply, pack, read_message
+from host.config import MIN_TOKEN_CHARS, ControlConfig
+from host.control.limits import ThrottledLog, TokenBucket, ensure_fd_room
+from host.control.ops import SAFETY_OPS, OpContext, OpError, Role, dispatch
+from host.control.wire import WireError, error_reply, pack, read_message
+
+__all__ = ["ClientConnection", "ControlServer", "ControlServerError", "Role"]
 
 log = logging.getLogger(__name__)
 
 TOPICS = ("pose", "state", "link")
-MAX_INFLIGHT_PER_CLIENT = 16
+MAX_INFLIGHT_PER_CLIENT = 16  # ordinary requests; stop and estop are not counted
+MAX_SAFETY_INFLIGHT = 64  # beyond this many stops in flight the next one waits for a slot
 FLUSH_TIMEOUT_S = 1.0
 REQUEST_GRACE_S = 5.0
-
-
-class Role(enum.Enum):
-    """What a client may do."""
-
-    NONE = "none"  # TCP client before a successful hello
-    VIEWER = "viewer"  # read-only ops and subscriptions
-    OPERATOR = "operator"  # everything, motion included
+# asyncio accepts up to `backlog` connections in one go before any of them is refused, so the
+# backlog bounds the descriptors a connection flood holds beyond the caps.
+BACKLOG = 16
+MAX_HELLO_FAILURES = 3  # per connection, then it is closed
+HELLO_FAILURE_BURST = 20.0  # failed hellos tolerated at once over all connections …
+HELLO_FAILURE_RATE_PER_S = 2.0  # … and refilled at this rate; beyond, the connection is closed
 
 
 class ControlServerError(RuntimeError):
@@ -48,7 +56,7 @@ class ControlServerError(RuntimeError):
 
 
 class ClientConnection:
-    """One connected client: its role, subscriptions and outgoing queues."""
+    """One connected client: its role, subscriptions, outgoing queues and limits."""
 
     def __init__(
         self,
@@ -56,23 +64,45 @@ class ClientConnection:
         reader: asyncio.StreamReader,
         writer: asyncio.StreamWriter,
         role: Role,
+        listener: str,
     ) -> None:
         self.server = server
         self.role = role
+        self.listener = listener  # "unix" or "tcp"
+        self.peer = str(writer.get_extra_info("peername") or listener)
         self.topics: set[str] = set()
         self.dropped_total = 0
         self._dropped_unreported = 0
         self._reader = reader
         self._writer = writer
-        self._replies: deque[dict[str, Any]] = deque()
+        self._replies: deque[bytes] = deque()  # encoded, so their size is known
+        self._reply_bytes = 0
         self._events: deque[dict[str, Any]] = deque(maxlen=server.queue_max)
         self._wake = asyncio.Event()
+        self._room = asyncio.Event()  # set whenever the output backlog is below the resume mark
         self._closing = False
         self._aborted = False
+        self._ended = False
+        self._read_task: asyncio.Task[None] | None = None
         self._requests: set[asyncio.Task[None]] = set()
+        self._ordinary = 0  # requests in flight that count against the cap
+        self._safety = 0
+        self._hello_failures = 0
+        self._close_after_reply = False
+        self._shutdown = False
+        self._t_connect = self._last_rx = time.monotonic()
+        limit = server.config.client_buffer_kb * 1024
+        self._limit_bytes = limit
+        self._pause_bytes = limit // 8  # stop reading requests above this backlog …
+        self._resume_bytes = limit // 16  # … until it is below this
+        # drain() then waits whenever the kernel-side buffer alone passes the resume mark, so an
+        # idle writer always leaves the backlog below it and a paused reader is always woken.
+        writer.transport.set_write_buffer_limits(self._resume_bytes, self._resume_bytes // 4)
 
     def publish(self, event: dict[str, Any]) -> None:
         """Queue an event; a full queue drops its oldest entry and counts it."""
+        if self._ended:
+            return
         if len(self._events) == self._events.maxlen:
             self.dropped_total += 1
             self._dropped_unreported += 1
@@ -81,39 +111,84 @@ class ClientConnection:
         self._wake.set()
 
     def reply(self, message: dict[str, Any]) -> None:
-        """Queue a reply (never dropped)."""
-        self._replies.append(message)
+        """Queue a reply (never dropped while the client is connected and reading)."""
+        if self._aborted:
+            return
+        data = self._encode(message)
+        self._replies.append(data)
+        self._reply_bytes += len(data)
         self._wake.set()
+        if self.backlog_bytes() > self._limit_bytes:
+            self.end("overrun", f"over {self._limit_bytes} bytes of replies unread", abort=True)
+
+    def backlog_bytes(self) -> int:
+        """Bytes queued for this client and not yet taken by the kernel."""
+        return self._writer.transport.get_write_buffer_size() + self._reply_bytes
 
     async def serve(self) -> None:
-        """Read requests until the peer leaves, something unrecoverable arrives, or abort()."""
+        """Read requests until the peer leaves, something unrecoverable arrives, or end()."""
         writer_task = asyncio.create_task(self._write_loop())
+        watch_task = asyncio.create_task(self._watch_timeouts())
+        self._read_task = asyncio.create_task(self._read_loop())
         try:
-            await self._read_loop()
+            await asyncio.wait({self._read_task})
             await self._finish_requests()
             self._closing = True
             self._wake.set()
-            with contextlib.suppress(TimeoutError, ConnectionError, OSError):
-                await asyncio.wait_for(asyncio.shield(writer_task), FLUSH_TIMEOUT_S)
+            if not self._aborted:
+                with contextlib.suppress(TimeoutError, ConnectionError, OSError):
+                    await asyncio.wait_for(asyncio.shield(writer_task), FLUSH_TIMEOUT_S)
         finally:
-            for task in [writer_task, *self._requests]:
+            for task in [self._read_task, watch_task, writer_task, *self._requests]:
                 task.cancel()
-            await asyncio.gather(writer_task, *self._requests, return_exceptions=True)
-            self._writer.close()
+            await asyncio.gather(
+                self._read_task, watch_task, writer_task, *self._requests, return_exceptions=True
+            )
+            self._hang_up()
 
     def abort(self) -> None:
         """Hang up now (daemon shutdown): requests in flight are cancelled, not awaited."""
-        self._aborted = True
-        self._writer.close()
+        self._shutdown = self._aborted = True
+        self._hang_up()
+        if self._read_task is not None:
+            self._read_task.cancel()  # it may be waiting for output room, not for the peer
+
+    def _hang_up(self) -> None:
+        """Close; with bytes still unsent, abort, since a close would wait on them for ever."""
+        if self._writer.transport.get_write_buffer_size():
+            self._writer.transport.abort()
+        else:
+            self._writer.close()
+
+    def end(self, code: str, message: str, abort: bool = False) -> None:
+        """Cut this client off: tell it why (unless it does not read anyway) and stop reading."""
+        if self._ended:
+            return
+        self._ended = True
+        self.server.stats["cut_off"] += 1
+        self.server.throttled.warning(
+            f"cut:{code}", "control client cut off", code=code, reason=message, peer=self.peer
+        )
+        if abort:
+            self._aborted = True
+            self._replies.clear()
+            self._reply_bytes = 0
+            self._writer.transport.abort()  # drop what it never read: the memory comes back now
+        else:
+            self._replies.append(self._encode(error_reply(None, code, message)))
+            self._wake.set()
+        self._room.set()
+        if self._read_task is not None:
+            self._read_task.cancel()
 
     async def _finish_requests(self) -> None:
         """Let requests in flight finish (an estop sent just before hanging up still counts)."""
-        if self._requests and not self._aborted:
+        if self._requests and not self._shutdown:
             await asyncio.wait(set(self._requests), timeout=REQUEST_GRACE_S)
 
     async def _read_loop(self) -> None:
-        """Parse messages and start a task per request."""
-        while True:
+        """Parse messages and start a task per request, while the client reads its replies."""
+        while await self._output_room():
             try:
                 message = await read_message(self._reader)
             except WireError as exc:
@@ -126,91 +201,154 @@ class ClientConnection:
                 return
             if message is None:
                 return
-            self._start_request(message)
+            self._last_rx = time.monotonic()
+            await self._start_request(message)
+            await asyncio.sleep(0)  # its first step (the frame to the controller) goes first
 
-    def _start_request(self, message: dict[str, Any]) -> None:
-        """Run one request as its own task, within the in-flight limit."""
-        if len(self._requests) >= MAX_INFLIGHT_PER_CLIENT:
-            self.reply(error_reply(message.get("id"), "busy", "too many requests in flight"))
+    async def _output_room(self) -> bool:
+        """Wait while the backlog is over the pause mark; cut off a client that stays stalled."""
+        if self._ended:
+            return False
+        if self.backlog_bytes() <= self._pause_bytes:
+            return True
+        self.server.stats["read_pauses"] += 1
+        stall_s = self.server.config.stall_timeout_s
+        deadline = time.monotonic() + stall_s
+        while self.backlog_bytes() > self._resume_bytes and not self._ended:
+            self._room.clear()
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                text = f"{self.backlog_bytes()} bytes of replies not read within {stall_s} s"
+                self.end("stalled", text, abort=True)
+                break
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._room.wait(), remaining)
+        return not self._ended
+
+    async def _start_request(self, message: dict[str, Any]) -> None:
+        """Run one request as its own task; stop and estop bypass the in-flight cap."""
+        op = message.get("op")
+        safety = isinstance(op, str) and op in SAFETY_OPS and self.role is not Role.NONE
+        if safety:
+            while self._safety >= MAX_SAFETY_INFLIGHT:  # stops in flight are already stopping it
+                await asyncio.wait(set(self._requests), return_when="FIRST_COMPLETED")
+        elif self._ordinary >= MAX_INFLIGHT_PER_CLIENT:
+            text = f"{MAX_INFLIGHT_PER_CLIENT} requests already in flight"
+            self.reply(error_reply(message.get("id"), "busy", text))
             return
         task = asyncio.create_task(self._handle(message))
         self._requests.add(task)
-        task.add_done_callback(self._requests.discard)
+        if safety:
+            self._safety += 1
+        else:
+            self._ordinary += 1
+        task.add_done_callback(lambda t: self._request_done(t, safety))
+
+    def _request_done(self, task: asyncio.Task[None], safety: bool) -> None:
+        """Free the request's slot."""
+        self._requests.discard(task)
+        if safety:
+            self._safety -= 1
+        else:
+            self._ordinary -= 1
 
     async def _handle(self, message: dict[str, Any]) -> None:
         """Dispatch a request and queue its reply."""
         request_id = message.get("id")
-        try:
-            result = await self._dispatch(message)
-        except OpError as exc:
-            self.server.stats["errors"] += 1
-            self.reply(error_reply(request_id, exc.code, str(exc)))
-            return
-        except Exception as exc:  # a controller failure must not take the connection down
-            self.server.stats["errors"] += 1
-            text = f"{type(exc).__name__}: {exc}"
-            self.reply(error_reply(request_id, "failed", text))
-            return
-        self.reply(ok_reply(request_id, result))
-
-    async def _dispatch(self, message: dict[str, Any]) -> Any:
-        """Check the envelope and the role, then run the op."""
         op, args = message.get("op"), message.get("args", {})
         if "id" not in message or not isinstance(op, str) or not isinstance(args, dict):
-            raise OpError("bad_request", 'a request needs "id", a string "op" and a map "args"')
+            body = OpError("bad_request", 'a request needs "id", a string "op", a map "args"')
+            self._answer(request_id, body.reply())
+            return
         if op == "hello":
-            return self._hello(args)
-        if self.role is Role.NONE:
-            raise OpError("unauthorized", 'send "hello" with a token first')
-        if op in ("subscribe", "unsubscribe"):
-            return self._subscription(op, args)
-        if op not in OPS:
-            raise OpError("unknown_op", f"unknown op {op!r}")
-        handler, needs_operator = OPS[op]
-        if needs_operator and self.role is not Role.OPERATOR:
-            raise OpError("forbidden", f"{op!r} needs the operator role")
-        self.server.stats["requests"] += 1
-        return await handler(self.server.context, args)
+            self._answer(request_id, self._hello(args))
+            if self._close_after_reply:
+                self.end("unauthorized", "too many failed hellos; connection closed")
+        elif op in ("subscribe", "unsubscribe") and self.role is not Role.NONE:
+            self._answer(request_id, self._subscription(op, args))
+        else:
+            self.server.stats["requests"] += 1
+            self._answer(request_id, await dispatch(self.server.context, self.role, op, args))
 
-    def _hello(self, args: Mapping[str, Any]) -> Any:
+    def _answer(self, request_id: Any, body: dict[str, Any]) -> None:
+        """Queue a reply body under the request's id."""
+        if not body.get("ok"):
+            self.server.stats["errors"] += 1
+        self.reply({"id": request_id, **body})
+
+    def _hello(self, args: Mapping[str, Any]) -> dict[str, Any]:
         """Authenticate a TCP client by token; on the Unix socket it just reports the role."""
-        if self.server.is_tcp(self):
+        if self.listener == "tcp":
             role = self.server.role_for_token(args.get("token"))
             if role is Role.NONE:
-                raise OpError("unauthorized", "unknown token")
+                return self._failed_hello()
             self.role = role
-        return {"role": self.role.value, "topics": list(TOPICS)}
+        return {"ok": True, "result": {"role": self.role.value, "topics": list(TOPICS)}}
 
-    def _subscription(self, op: str, args: Mapping[str, Any]) -> Any:
+    def _failed_hello(self) -> dict[str, Any]:
+        """Count, log (throttled) and, past the limits, close after the reply."""
+        self._hello_failures += 1
+        self.server.stats["hello_failures"] += 1
+        allowed = self.server.hello_failures.take()
+        self.server.throttled.warning("hello", "failed hello on the control socket", peer=self.peer)
+        self._close_after_reply = self._hello_failures >= MAX_HELLO_FAILURES or not allowed
+        return OpError("unauthorized", "unknown token").reply()
+
+    def _subscription(self, op: str, args: Mapping[str, Any]) -> dict[str, Any]:
         """Add or remove topics."""
         topics = args.get("topics")
         if not isinstance(topics, list) or not all(t in TOPICS for t in topics):
-            raise OpError("bad_args", f"topics must be a list drawn from {list(TOPICS)}")
+            text = f"topics must be a list drawn from {list(TOPICS)}"
+            return OpError("bad_args", text).reply()
         if op == "subscribe":
             self.topics.update(topics)
         else:
             self.topics.difference_update(topics)
-        return {"topics": sorted(self.topics), "dropped": self.dropped_total}
+        result = {"topics": sorted(self.topics), "dropped": self.dropped_total}
+        return {"ok": True, "result": result}
+
+    async def _watch_timeouts(self) -> None:
+        """Cut off a TCP client that never says hello, and any client idle for too long."""
+        cfg = self.server.config
+        period_s = min(max(min(cfg.hello_timeout_s, cfg.idle_timeout_s) / 4, 0.05), 5.0)
+        while not self._ended:
+            await asyncio.sleep(period_s)
+            now = time.monotonic()
+            if self.role is Role.NONE and now - self._t_connect >= cfg.hello_timeout_s:
+                text = f"no successful hello within {cfg.hello_timeout_s} s"
+                self.end("timeout", text + " (control.hello_timeout_s)")
+            quiet = not self.topics and not self._requests
+            if quiet and now - self._last_rx >= cfg.idle_timeout_s:
+                text = f"no request and no subscription for {cfg.idle_timeout_s} s"
+                self.end("timeout", text + " (control.idle_timeout_s)")
 
     async def _write_loop(self) -> None:
         """Send replies first, then events, then any drop report."""
         while True:
             await self._wake.wait()
             self._wake.clear()
-            while self._replies or self._events or self._dropped_unreported:
-                self._writer.write(self._encode(self._next_message()))
+            while (data := self._next_bytes()) is not None:
+                self._writer.write(data)
                 await self._writer.drain()
+                if self.backlog_bytes() <= self._resume_bytes:
+                    self._room.set()
+            self._room.set()
             if self._closing:
                 return
 
-    def _next_message(self) -> dict[str, Any]:
-        """The next outgoing message by priority."""
+    def _next_bytes(self) -> bytes | None:
+        """The next outgoing message by priority, encoded; None when there is nothing to send."""
         if self._replies:
-            return self._replies.popleft()
+            data = self._replies.popleft()
+            self._reply_bytes -= len(data)
+            return data
         if self._dropped_unreported:
             count, self._dropped_unreported = self._dropped_unreported, 0
-            return {"topic": "overflow", "data": {"dropped": count, "total": self.dropped_total}}
-        return self._events.popleft()
+            report = {"dropped": count, "total": self.dropped_total}
+            return self._encode({"topic": "overflow", "data": report})
+        if self._events:
+            return self._encode(self._events.popleft())
+        return None
 
     @staticmethod
     def _encode(message: dict[str, Any]) -> bytes:
@@ -228,11 +366,15 @@ class ControlServer:
         self.context = context
         self.config = config
         self.queue_max = config.queue_max
-        self.stats = {"connections": 0, "requests": 0, "errors": 0, "bad_requests": 0}
-        self.stats["events_dropped"] = 0
+        self.stats = dict.fromkeys(
+            ("connections", "requests", "errors", "bad_requests", "events_dropped"), 0
+        )
+        self.stats.update(refused=0, cut_off=0, hello_failures=0, read_pauses=0)
+        context.control_stats = lambda: self.stats  # `status` shows refusals and cut-offs
         self.tcp_port: int | None = None
+        self.throttled = ThrottledLog(log)
+        self.hello_failures = TokenBucket(HELLO_FAILURE_BURST, HELLO_FAILURE_RATE_PER_S)
         self._clients: dict[ClientConnection, asyncio.Task[Any] | None] = {}
-        self._tcp_clients: set[ClientConnection] = set()
         self._servers: list[asyncio.Server] = []
         self._closed = False
 
@@ -243,17 +385,24 @@ class ControlServer:
 
     async def start(self) -> None:
         """Bind the Unix socket (and TCP if enabled)."""
+        self._check_tokens()
         path = Path(self.config.socket_path)
         _clear_stale_socket(path)
-        unix = await asyncio.start_unix_server(self._on_unix, path=str(path))
+        unix = await asyncio.start_unix_server(self._on_unix, path=str(path), backlog=BACKLOG)
         self._servers.append(unix)
         _set_permissions(path, self.config.socket_mode, self.config.socket_group)
+        caps = self.config.max_unix_connections + BACKLOG
         if self.config.tcp_enabled:
             tcp = await asyncio.start_server(
-                self._on_tcp, self.config.tcp_host, self.config.tcp_port
+                self._on_tcp, self.config.tcp_host, self.config.tcp_port, backlog=BACKLOG
             )
             self._servers.append(tcp)
             self.tcp_port = int(tcp.sockets[0].getsockname()[1])
+            caps += self.config.max_tcp_connections + BACKLOG
+        soft, wanted = ensure_fd_room(caps)
+        if soft < wanted:
+            kv = {"nofile": soft, "wanted": wanted}
+            log.warning("open-file limit below the connection caps", extra={"kv": kv})
         log.info("control socket listening", extra={"kv": {"path": path, "tcp": self.tcp_port}})
 
     async def close(self) -> None:
@@ -294,33 +443,53 @@ class ControlServer:
                 return role
         return Role.NONE
 
-    def is_tcp(self, client: ClientConnection) -> bool:
-        """True for a client that came in over TCP."""
-        return client in self._tcp_clients
+    def connections(self, listener: str) -> int:
+        """Clients connected now on one listener ("unix" or "tcp")."""
+        return sum(1 for c in self._clients if c.listener == listener)
+
+    def _check_tokens(self) -> None:
+        """Refuse tokens short enough to guess (config check says the same, naming the key)."""
+        for key in ("operator_token", "viewer_token"):
+            if 0 < (n := len(getattr(self.config, key))) < MIN_TOKEN_CHARS:
+                text = f"control.{key}: {n} characters, need {MIN_TOKEN_CHARS} or more"
+                raise ControlServerError(text)
 
     async def _on_unix(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """A Unix-socket client: file permissions already vouched for it."""
-        await self._serve(ClientConnection(self, reader, writer, Role.OPERATOR))
+        cap = self.config.max_unix_connections
+        if self._admit(writer, "unix", cap, "control.max_unix_connections"):
+            await self._serve(ClientConnection(self, reader, writer, Role.OPERATOR, "unix"))
 
     async def _on_tcp(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """A TCP client: nothing but hello until it shows a token."""
-        client = ClientConnection(self, reader, writer, Role.NONE)
-        self._tcp_clients.add(client)
-        await self._serve(client)
+        cap = self.config.max_tcp_connections
+        if self._admit(writer, "tcp", cap, "control.max_tcp_connections"):
+            await self._serve(ClientConnection(self, reader, writer, Role.NONE, "tcp"))
+
+    def _admit(self, writer: asyncio.StreamWriter, listener: str, cap: int, key: str) -> bool:
+        """Below the listener's cap: True; else tell the client why, hang up and return False."""
+        if self.connections(listener) < cap and not self._closed:
+            return True
+        self.stats["refused"] += 1
+        text = f"{cap} clients already connected on {listener} ({key})"
+        self.throttled.warning(f"refused:{listener}", "control client refused", reason=text)
+        with contextlib.suppress(ConnectionError, OSError):
+            writer.write(pack(error_reply(None, "too_many_clients", text)))
+        writer.close()
+        return False
 
     async def _serve(self, client: ClientConnection) -> None:
         """Track a client for its lifetime."""
         self.stats["connections"] += 1
-        if self._closed:
-            client.abort()  # accepted in the instant close() ran
         self._clients[client] = asyncio.current_task()
         try:
             await client.serve()
         except asyncio.CancelledError:
             pass  # only close() cancels a client, and asyncio.streams logs a cancelled handler
+        except Exception as exc:  # a bug must cost one client and a few log lines, not the daemon
+            self.throttled.warning("client_error", "control client failed", error=repr(exc))
         finally:
             self._clients.pop(client, None)
-            self._tcp_clients.discard(client)
 
 
 def _clear_stale_socket(path: Path) -> None:

@@ -59,9 +59,14 @@ async def read_message(reader: asyncio.StreamReader) -> dict[str, Any] | None:
     return unpack_body(body)
 
 
-def error_reply(request_id: Any, code: str, message: str) -> dict[str, Any]:
-    """A failed reply."""
-    return {"id": request_id, "ok": False, "error": {"code": code, "message": message}}
+def error_reply(
+    request_id: Any, code: str, message: str, detail: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """A failed reply; `detail` carries machine-readable facts (e.g. the watchdog period)."""
+    error: dict[str, Any] = {"code": code, "message": message}
+    if detail:
+        error["detail"] = detail
+    return {"id": request_id, "ok": False, "error": error}
 
 
 def ok_reply(request_id: Any, result: Any) -> dict[str, Any]:

@@ -9,13 +9,13 @@ roll is the turn of the camera about its optical axis, positive when the image t
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 from dataclasses import dataclass
 
 from host.config import FreedConfig
 from host.control.api import Matrix4
+from host.outputs.udp import UdpFanout
 
 log = logging.getLogger(__name__)
 
@@ -157,40 +157,23 @@ def decode_d1(packet: bytes) -> FreedPacket:
     return FreedPacket(packet[1], pose, zoom, focus)
 
 
-def parse_destination(text: str) -> tuple[str, int]:
-    """`host:port` or `[v6]:port` into a (host, port) pair."""
-    host, _, port = text.rpartition(":")
-    return host.strip("[]"), int(port)
-
-
-class _Counter(asyncio.DatagramProtocol):
-    """Counts send errors reported by the OS (ICMP port unreachable and the like)."""
-
-    def __init__(self, sender: FreedSender) -> None:
-        self.sender = sender
-
-    def error_received(self, exc: Exception) -> None:
-        self.sender.errors += 1
-
-
 class FreedSender:
     """Sends a D1 packet per pose to every configured destination."""
 
     def __init__(self, config: FreedConfig) -> None:
         self.config = config
         self.sent = 0
-        self.errors = 0
         self.clamped = 0
-        self._transports: list[asyncio.DatagramTransport] = []
+        self._udp = UdpFanout(config.destinations)
+
+    @property
+    def errors(self) -> int:
+        """Send errors the OS reported (ICMP port unreachable and the like)."""
+        return self._udp.errors
 
     async def start(self) -> None:
         """Open one UDP endpoint per destination."""
-        loop = asyncio.get_running_loop()
-        for destination in self.config.destinations:
-            transport, _ = await loop.create_datagram_endpoint(
-                lambda: _Counter(self), remote_addr=parse_destination(destination)
-            )
-            self._transports.append(transport)
+        await self._udp.start()
 
     def send(self, T_w_c: Matrix4) -> bytes:
         """Encode the pose and send it (never blocks: UDP datagrams are queued by the OS)."""
@@ -199,16 +182,13 @@ class FreedSender:
             self.config.camera_id, pose, self.config.zoom, self.config.focus
         )
         self.clamped += clamped
-        for transport in self._transports:
-            transport.sendto(packet)
+        self._udp.send(packet)
         self.sent += 1
         return packet
 
     def close(self) -> None:
         """Close every endpoint."""
-        for transport in self._transports:
-            transport.close()
-        self._transports.clear()
+        self._udp.close()
 
     def stats(self) -> dict[str, int]:
         """Counters for the status op."""

@@ -16,18 +16,21 @@ import signal
 import time
 from collections.abc import Callable, Coroutine
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from host.commissioning.env import CommissioningEnv
 from host.config import Config, load_config
 from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
-from host.control.ops import OpContext
+from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
-from host.outputs.freed import FreedSender
+from host.outputs.tracking import TrackingOutputs
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
+
+if TYPE_CHECKING:
+    from host.bus.publisher import BusPublisher
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +45,7 @@ LINK_CLOSE_TIMEOUT_S = 0.4
 STATE_POLL_S = 0.1
 LINK_POLL_S = 0.25
 FIRST_RETRY_S = 0.5
-RESTART_SECTIONS = ("link", "camera", "registration", "control")
+RESTART_SECTIONS = ("link", "camera", "registration", "control", "bus")
 
 
 class Phase(enum.Enum):
@@ -79,7 +82,8 @@ class Daemon:
         self.output_errors = 0
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
-        self.freed: FreedSender | None = None
+        self.outputs = TrackingOutputs()
+        self.bus: BusPublisher | None = None
         self.controller = controller_factory(config, self.record)
         self.frame_loop = (
             frame_loop_factory(config, self.controller, self.on_pose, self.record)
@@ -126,8 +130,9 @@ class Daemon:
         data = sample.to_dict()
         try:
             self.server.publish("pose", data)
-            if self.freed is not None:
-                self.freed.send(sample.T_w_c)
+            self.outputs.send(sample)
+            if self.bus is not None:
+                self.bus.publish_pose(sample)
             self.record(KIND_POSE, sample.t_ns, data)
         except Exception as exc:  # an output must never break the frame loop
             self.output_errors += 1
@@ -153,7 +158,8 @@ class Daemon:
             "fps": fps,
             "clients": self.server.client_count,
             "link_error": "" if self.controller.connected else self.link_error,
-            "freed": self.freed.stats() if self.freed else None,
+            **self.outputs.stats(),
+            "bus": self.bus.stats() if self.bus is not None else None,
             "recording": str(self.recorder.current) if self.recorder else None,
             "output_errors": self.output_errors,
             # the error budget at the current pose (docs/COMMISSIONING.md), None when unknown
@@ -206,7 +212,7 @@ class Daemon:
             set_level(new.log.level)
             applied.append("log")
         if new.outputs != self.config.outputs:
-            await self._restart_freed(new)
+            await self.outputs.start(new)
             applied.append("outputs")
         if new.recording != self.config.recording:
             self._restart_recorder(new)
@@ -219,8 +225,9 @@ class Daemon:
     async def _start(self) -> None:
         """Open the socket and the outputs, then start the background tasks."""
         await self.server.start()
-        await self._restart_freed(self.config)
+        await self.outputs.start(self.config)
         self._restart_recorder(self.config)
+        self._start_bus()
         for job in (self._link_keeper(), self._watchdog(), self._status_reporter()):
             self._spawn(job)
         self._spawn(self._state_publisher())
@@ -240,8 +247,9 @@ class Daemon:
         await asyncio.gather(*self._tasks, return_exceptions=True)
         await self._halt_and_close()
         await self.server.close()
-        if self.freed is not None:
-            self.freed.close()
+        self.outputs.close()
+        if self.bus is not None:
+            await self.bus.close()
         if self.recorder is not None:
             self.recorder.close()
         self.notifier.close()
@@ -286,6 +294,8 @@ class Daemon:
             self.ready_sent = True
             self.notifier.ready("running: controller link up")
         self.server.publish("link", dict(self.controller.link_stats()))
+        if self.bus is not None:
+            self.bus.publish_event("link_up")
 
     async def _ready_grace(self) -> None:
         """READY=1 after the grace period even without a link, saying why."""
@@ -320,18 +330,32 @@ class Daemon:
             snapshot = dict(self.controller.snapshot())
             if snapshot != last:
                 self.server.publish("state", snapshot)
+                if self.bus is not None:
+                    self.bus.publish_state(snapshot)
                 last = snapshot
             await asyncio.sleep(STATE_POLL_S)
 
-    async def _restart_freed(self, config: Config) -> None:
-        """(Re)open the FreeD sender as configured."""
-        if self.freed is not None:
-            self.freed.close()
-            self.freed = None
-        if config.outputs.freed.enabled:
-            sender = FreedSender(config.outputs.freed)
-            await sender.start()
-            self.freed = sender
+    def _start_bus(self) -> None:
+        """Put this rig on the bus if `[bus]` says so (Zenoh is imported only then)."""
+        if not self.config.bus.enabled:
+            return
+        from host.bus.publisher import BusPublisher
+
+        ctx = self._op_context()
+        self.bus = BusPublisher(
+            self.config.bus,
+            status=lambda: op_status(ctx, {}),
+            rig=lambda: op_calibration(ctx, {}),
+            stats=self._bus_stats,
+        )
+        self._spawn(self.bus.run())
+
+    def _bus_stats(self) -> dict[str, Any]:
+        """What the bus publishes every stats interval: link, clock sync and frame rate."""
+        fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
+        up = self.controller.connected
+        return {"link_up": up, "link_error": "" if up else self.link_error, "fps": fps,
+                "link": dict(self.controller.link_stats())}  # fmt: skip
 
     def _restart_recorder(self, config: Config) -> None:
         """(Re)open the recording as configured; a failure is logged, not fatal."""

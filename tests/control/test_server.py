@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
 import stat
@@ -14,15 +15,19 @@ from typing import Any
 import msgpack
 import pytest
 
-from host.config import ControlConfig
+from host.config import ControlConfig, load_config
+from host.config_fields import ConfigError
 from host.control.api import PoseSample
 from host.control.client import ControlClient, ControlRequestError
 from host.control.fake import FakeController
-from host.control.ops import OpContext
+from host.control.limits import TokenBucket
+from host.control.ops import OpContext, Role, dispatch
 from host.control.server import ControlServer, ControlServerError
-from host.control.wire import MAX_MESSAGE_BYTES
+from host.control.wire import MAX_MESSAGE_BYTES, pack, read_message
 from protocol import ParamId
 
+OP_TOKEN = "operator-secret-0123456789"
+VIEW_TOKEN = "viewer-secret-0123456789"
 IDENTITY = ((1.0, 0, 0, 0), (0, 1.0, 0, 0), (0, 0, 1.0, 0), (0, 0, 0, 1.0))
 
 
@@ -39,8 +44,8 @@ async def server(tmp_path: Path, fake: FakeController) -> AsyncIterator[ControlS
         socket_path=str(tmp_path / "ctl.sock"),
         tcp_enabled=True,
         tcp_port=0,
-        operator_token="op-secret",
-        viewer_token="view-secret",
+        operator_token=OP_TOKEN,
+        viewer_token=VIEW_TOKEN,
         queue_max=8,
     )
     pose = PoseSample(123, IDENTITY, "READY", 5.0)
@@ -136,9 +141,11 @@ async def test_garbage_gets_error_reply_and_connection_survives(client: ControlC
     await client.send_raw(struct.pack(">I", len(array)) + array)
     no_id = msgpack.packb({"op": "status"})
     await client.send_raw(struct.pack(">I", len(no_id)) + no_id)
+    await client.send_raw(pack({"id": None, "op": ["estop"]}))  # unhashable op
+    await client.send_raw(pack({"id": {"a": 1}, "op": "fly"}))  # echoed back: unhashable id
     assert (await client.request("status"))["link_up"] is True
     codes = [m["error"]["code"] for m in client.unmatched]
-    assert codes == ["bad_request", "bad_request", "bad_request"]
+    assert codes == ["bad_request"] * 4 + ["unknown_op"]
 
 
 async def test_oversized_request_gets_error_then_close(client: ControlClient) -> None:
@@ -203,19 +210,93 @@ async def test_tcp_requires_hello_and_viewer_cannot_move(
         assert exc.value.code == "unauthorized"
         with pytest.raises(ControlRequestError):
             await c.request("hello", token="wrong")
-        assert (await c.request("hello", token="view-secret"))["role"] == "viewer"
+        assert (await c.request("hello", token=VIEW_TOKEN))["role"] == "viewer"
         assert "controller" in await c.request("status")
         before = len(fake.calls)
-        with pytest.raises(ControlRequestError) as exc:
-            await c.request("estop")
-        assert exc.value.code == "forbidden"
+        for op in ("home", "clear", "param_persist"):
+            with pytest.raises(ControlRequestError) as exc:
+                await c.request(op)
+            assert exc.value.code == "forbidden"
         assert len(fake.calls) == before
+
+
+async def test_viewer_may_stop_and_estop(server: ControlServer, fake: FakeController) -> None:
+    assert server.tcp_port
+    async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
+        await c.request("hello", token=VIEW_TOKEN)
+        assert await c.request("stop") == {"sent": True, "acked": True}
+        assert await c.request("estop") == {"sent": True, "acked": True}
+    assert [name for name, _ in fake.calls[-2:]] == ["stop", "estop"]
+    assert fake.state.name == "ESTOP"
+
+
+async def test_estop_behind_a_full_pipeline_runs_at_once(
+    client: ControlClient, fake: FakeController
+) -> None:
+    gate = asyncio.Event()
+
+    async def slow_param(param: ParamId) -> int:
+        await gate.wait()
+        return 0
+
+    fake.get_param = slow_param  # type: ignore[method-assign]
+    pipeline = [{"id": 100 + i, "op": "param_get", "args": {"param": 1}} for i in range(17)]
+    await client.send_raw(b"".join(pack(m) for m in pipeline))
+    result = await asyncio.wait_for(client.request("estop"), 5)
+    assert result == {"sent": True, "acked": True}
+    assert fake.state.name == "ESTOP"
+    busy = [m for m in client.unmatched if m["id"] == 116]  # the 17th ordinary request
+    assert busy
+    assert busy[0]["error"]["code"] == "busy"
+    assert not [m for m in client.unmatched if m["id"] < 116]  # the 16 still wait
+    gate.set()
+
+
+async def test_estop_with_the_link_down_names_the_watchdog(
+    client: ControlClient, fake: FakeController
+) -> None:
+    await client.request("param_set", param="WATCHDOG_MS", value=800)
+    await fake.close()
+    for op in ("estop", "stop"):
+        with pytest.raises(ControlRequestError) as exc:
+            await client.request(op)
+        assert exc.value.code == "unavailable"
+        assert f"{op} not sent: the controller link is down" in exc.value.message
+        assert "watchdog stops the trolley" in exc.value.message
+        assert "800 ms" in exc.value.message
+
+
+async def test_dispatch_serves_a_caller_without_a_socket(fake: FakeController) -> None:
+    ctx = OpContext(fake)
+    assert await dispatch(ctx, Role.VIEWER, "stop", {}) == {
+        "ok": True,
+        "result": {"sent": True, "acked": True},
+    }
+    refused = await dispatch(ctx, Role.VIEWER, "move", {"position_mm": 1.0})
+    assert refused["error"]["code"] == "forbidden"
+    assert (await dispatch(ctx, Role.NONE, "status", {}))["error"]["code"] == "unauthorized"
+    assert (await dispatch(ctx, Role.OPERATOR, "move", {}))["error"]["code"] == "bad_args"
+    down = await dispatch(OpContext(None), Role.OPERATOR, "estop", {})
+    assert down["error"]["code"] == "unavailable"
+    assert down["error"]["detail"] == {
+        "sent": False,
+        "acked": False,
+        "watchdog_ms": 500,
+        "watchdog_known": False,
+    }
+    assert "500 ms, the default, unless changed" in down["error"]["message"]
+
+
+async def test_short_tokens_are_refused(tmp_path: Path) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "s.sock"), viewer_token="short")
+    with pytest.raises(ControlServerError, match=r"control\.viewer_token: 5 characters"):
+        await ControlServer(OpContext(None), config).start()
 
 
 async def test_tcp_operator_may_move(server: ControlServer, fake: FakeController) -> None:
     assert server.tcp_port
     async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
-        assert (await c.request("hello", token="op-secret"))["role"] == "operator"
+        assert (await c.request("hello", token=OP_TOKEN))["role"] == "operator"
         await c.request("estop")
     assert fake.state.name == "ESTOP"
 
@@ -266,3 +347,105 @@ async def test_stale_socket_file_is_replaced(tmp_path: Path) -> None:
     finally:
         await srv.close()
     assert not path.exists()
+
+
+async def test_config_check_names_a_short_token(tmp_path: Path) -> None:
+    path = tmp_path / "orbitar.toml"
+    path.write_text('[control]\ntcp_enabled = true\noperator_token = "abc"\n')
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert "control.operator_token: 3 characters, need 16 or more" in str(exc.value)
+
+
+async def test_config_check_names_bad_limits(tmp_path: Path) -> None:
+    path = tmp_path / "orbitar.toml"
+    path.write_text("[control]\nmax_tcp_connections = 0\nclient_buffer_kb = 10\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(path)
+    assert "control.max_tcp_connections" in str(exc.value)
+    assert "control.client_buffer_kb" in str(exc.value)
+
+
+async def test_idle_clients_are_cut_off_but_subscribers_stay(
+    tmp_path: Path, fake: FakeController
+) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "idle.sock"), idle_timeout_s=1.0)
+    srv = ControlServer(OpContext(fake), config)
+    await srv.start()
+    try:
+        idle = await ControlClient.connect_unix(config.socket_path)
+        watcher = await ControlClient.connect_unix(config.socket_path)
+        await watcher.request("subscribe", topics=["state"])
+        with pytest.raises(ConnectionError):
+            await idle.next_event(timeout_s=5)
+        assert idle.unmatched[0]["error"]["code"] == "timeout"
+        assert "control.idle_timeout_s" in idle.unmatched[0]["error"]["message"]
+        assert not watcher.closed
+        assert (await watcher.request("status"))["link_up"] is True
+        await idle.close()
+        await watcher.close()
+    finally:
+        await srv.close()
+
+
+async def test_a_slow_reader_is_paused_not_cut_off(tmp_path: Path) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "slow.sock"), client_buffer_kb=256)
+    srv = ControlServer(OpContext(None), config)
+    await srv.start()
+    try:
+        reader, writer = await asyncio.open_unix_connection(config.socket_path)
+        n = 12_000  # ~700 kB of replies: far past the kernel buffers and the 32 kB pause mark
+        writer.write(b"".join(pack({"id": i, "op": "status"}) for i in range(n)))
+        sending = asyncio.create_task(writer.drain())
+        for _ in range(200):  # not reading: the server stops reading us
+            if srv.stats["read_pauses"]:
+                break
+            await asyncio.sleep(0.05)
+        assert srv.stats["read_pauses"] >= 1
+
+        async def read_all() -> list[Any]:
+            return [(await read_message(reader) or {}).get("id") for _ in range(n)]
+
+        ids = await asyncio.wait_for(read_all(), 15)  # resumes at once, not after stall_timeout_s
+        await sending
+        assert ids == list(range(n))
+        assert srv.stats["cut_off"] == 0
+        writer.close()
+    finally:
+        await srv.close()
+
+
+async def test_replies_past_the_buffer_limit_cut_the_client_off(tmp_path: Path) -> None:
+    config = ControlConfig(socket_path=str(tmp_path / "big.sock"), client_buffer_kb=256)
+    srv = ControlServer(OpContext(None), config)
+    await srv.start()
+    try:
+        reader, writer = await asyncio.open_unix_connection(config.socket_path)
+        writer.write(pack({"id": 0, "op": "status"}))
+        await asyncio.sleep(0.2)
+        (conn,) = srv._clients
+        for i in range(20):  # replies of requests already in flight, 1.2 MB, never read
+            conn.reply({"id": i, "ok": True, "result": "x" * 60_000})
+        assert conn.backlog_bytes() == 0  # dropped at once: the memory is back
+        assert srv.stats["cut_off"] == 1
+        with contextlib.suppress(ConnectionError):
+            await asyncio.wait_for(reader.read(), 5)  # the connection ends
+        writer.close()
+    finally:
+        await srv.close()
+
+
+async def test_failed_hellos_over_all_connections_are_throttled(server: ControlServer) -> None:
+    assert server.tcp_port
+    server.hello_failures = TokenBucket(burst=2, rate_per_s=0.01)
+    for expect_closed in (False, False, True):  # the third guess in a row, on a new connection
+        async with await ControlClient.connect_tcp("127.0.0.1", server.tcp_port) as c:
+            with pytest.raises(ControlRequestError):
+                await c.request("hello", token="guess-" * 4)
+            if expect_closed:
+                with pytest.raises(ConnectionError):
+                    await c.next_event(timeout_s=5)
+                assert "too many failed hellos" in c.unmatched[0]["error"]["message"]
+            else:
+                assert (await c.request("hello", token=OP_TOKEN))["role"] == "operator"
+    assert server.stats["hello_failures"] == 3
