@@ -24,7 +24,7 @@ from host.commissioning.jobs import JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
 from host.commissioning.plan import IMAGE_TARGETS, board_plan
 from host.commissioning.report import Page, run_dir, write_page
-from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError
+from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role
 from host.geometry.transforms import FloatArray
 from host.rig import update_rig
 
@@ -258,11 +258,11 @@ def _finite(x: Any) -> bool:
     return not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x)
 
 
-# op name → (handler, needs the operator role); merged into host.control.ops.OPS
-COMMISSIONING_OPS: dict[str, tuple[Handler, bool]] = {
-    "calibrate_intrinsics": (op_calibrate_intrinsics, True),
-    "calibrate_head": (op_calibrate_head, True),
-    "calibrate_check": (op_calibrate_check, True),
-    "commissioning_status": (op_commissioning_status, False),
-    "commissioning_cancel": (op_commissioning_cancel, True),
+# op name → (handler, the least role that may run it); merged into host.control.ops.OPS
+COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
+    "calibrate_intrinsics": (op_calibrate_intrinsics, Role.OPERATOR),
+    "calibrate_head": (op_calibrate_head, Role.OPERATOR),
+    "calibrate_check": (op_calibrate_check, Role.OPERATOR),
+    "commissioning_status": (op_commissioning_status, Role.VIEWER),
+    "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }
