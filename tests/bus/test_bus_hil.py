@@ -24,7 +24,7 @@ from host.outputs.opentrackio_packet import Reassembler, decode_segment
 from tests.bus.test_bus import free_port, wait_until
 from tests.outputs.test_opentrackio import VALIDATOR, rot
 from tests.service.test_daemon import connect
-from tests.service.test_daemon_hil import CONFIG, Notifications, start_sim
+from tests.service.test_daemon_hil import CONFIG, RIG, Notifications, start_sim
 
 EXTRA = """
 [bus]
@@ -63,6 +63,7 @@ async def test_daemon_on_the_bus_and_as_opentrackio(tmp_path: Path) -> None:
     config = tmp_path / "orbitar.toml"
     text = CONFIG.format(dir=tmp_path) + EXTRA.format(bus_port=bus_port, otio_port=otio_port)
     config.write_text(text)
+    (tmp_path / "rig.toml").write_text(RIG)  # CONFIG's [rig] path
     sim = await start_sim(tmp_path)
     notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
     notify.bind(str(tmp_path / "notify.sock"))
