@@ -48,6 +48,13 @@ def add_parsers(subparsers: Any) -> None:
     _pose_args(check)
     check.add_argument("--max-rms", type=float, help="pass threshold, px (default 1.0)")
     check.set_defaults(handler=lambda a: run_posed(a, "calibrate_check"))
+    lat = _common(sub.add_parser("latency", help="frame stamp to exposure offset, from passes"))
+    _board_args(lat, centre=False)
+    _pose_args(lat)
+    lat.add_argument("--station", type=float, required=True, help="arc length facing the board, mm")
+    lat.add_argument("--span", type=float, default=200.0, help="pass length, mm (default 200)")
+    lat.add_argument("--passes", type=int, default=6, help="passes back and forth (default 6)")
+    lat.set_defaults(handler=lambda a: run_posed(a, "calibrate_latency"))
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -126,10 +133,12 @@ def run_posed(args: argparse.Namespace, op: str) -> int:
         return _fail(f"--board-pose {args.board_pose}: {exc}")
     req["board_sigma_mm"] = args.board_sigma_mm
     req["board_sigma_rad"] = args.board_sigma_mrad / 1000.0
-    if args.stations:
+    if args.stations and op != "calibrate_latency":
         req["stations_mm"] = list(args.stations)
     if args.speed is not None:
         req["speed_mm_s"] = args.speed
+    if op == "calibrate_latency":
+        req.update(station_mm=args.station, span_mm=args.span, passes=args.passes)
     if getattr(args, "max_rms", None) is not None:
         req["max_rms_px"] = args.max_rms
     req["write"] = not args.no_write

@@ -71,6 +71,9 @@ class CommissioningEnv:
     camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
     # the error budget's inputs and the model points it is evaluated on (None: no budget)
     budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
+    # the daemon's own pose source: frame stamp → (s_mm, pan, tilt), None when it has none
+    pose_at: Callable[[int], tuple[float, float, float] | None] | None = None
+    latency_ms: Callable[[], float] = _no_home  # the exposure latency the pose source applies
     # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
     after_write: Callable[[], Awaitable[Any]] | None = None
 
@@ -120,8 +123,11 @@ class CommissioningEnv:
             wire = manipulator_wireframe() if model == BUILTIN_MODEL else load_model(model)
             return inputs_from_rig(spec), wire.vertices
 
+        def latency() -> float:
+            return float(load().camera.latency.value)
+
         return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov,
-                   budget=budget)  # fmt: skip
+                   budget=budget, latency_ms=latency)  # fmt: skip
 
     @classmethod
     def for_rig_file(

@@ -18,13 +18,13 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import head_run, intrinsics_run
+from host.commissioning import head_run, intrinsics_run, latency_run
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.jobs import JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
-from host.commissioning.plan import IMAGE_TARGETS, board_plan
+from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
 from host.commissioning.report import Page, run_dir, write_page
-from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role
+from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
 from host.geometry.transforms import FloatArray
 from host.rig import update_rig
 
@@ -221,6 +221,66 @@ async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     )
 
 
+async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a latency run: board_pose, station_mm, span_mm, speed_mm_s, passes, write."""
+    env = env_of(ctx)
+    T_w_b, _ = board_pose(args)
+    spec = board_spec(args)
+    station = number(args, "station_mm", -MAX_ABS_MM, MAX_ABS_MM)
+    span = number({"span_mm": 200.0, **args}, "span_mm", 20.0, 5000.0)
+    speed = number({"speed_mm_s": 300.0, **args}, "speed_mm_s", 10.0, MAX_SPEED_MM_S)
+    passes = args.get("passes", 6)
+    if isinstance(passes, bool) or not isinstance(passes, int) or not 2 <= passes <= 40:
+        raise OpError("bad_args", f"passes = {passes!r}: expected an integer in [2, 40]")
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None or env.pose_at is None:
+        raise OpError("unavailable", "no camera frames or no pose source in this daemon")
+    controller, pose_at = ctx.controller, env.pose_at
+    limits = latency_run.LatencyThresholds()
+    centre = (T_w_b @ np.append(spec.centre_mm, 1.0))[:3]
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        tap = env.frames()
+        if tap is None:
+            raise AbortedError("the camera went away")
+        rig, camera = env.kinematics()
+        size = np.array([camera.width - 1.0, camera.height - 1.0])
+        angles = aim_at_pixel(rig, camera, station, centre, size / 2)
+        if angles is None:
+            raise AbortedError(f"the board cannot be aimed at from s = {station:.0f} mm")
+        view = ViewTarget(station, angles[0], angles[1], f"s={station:.0f}")
+        io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
+        det = BoardDetector(spec)
+        frames = await latency_run.capture_passes(
+            io, tap, pose_at, det, view, span, speed, passes, progress
+        )
+        progress["phase"] = "solving"
+        out = await asyncio.to_thread(
+            latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits
+        )
+        report = await asyncio.to_thread(
+            _write, env.report_root, "latency", latency_run.latency_page(out, limits)
+        )
+        written = None
+        if out.passed and bool(args.get("write", True)) and env.rig_path is not None:
+            progress["phase"] = "writing"
+            await asyncio.to_thread(
+                update_rig, env.rig_path, latency_run.latency_update(out), "calibrate latency"
+            )
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**out.summary(), "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("latency", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
 def _write(root: Path, kind: str, page: Page) -> str:
     """A run's report directory and page."""
     return str(write_page(run_dir(root, kind), page))
@@ -263,6 +323,7 @@ COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
     "calibrate_intrinsics": (op_calibrate_intrinsics, Role.OPERATOR),
     "calibrate_head": (op_calibrate_head, Role.OPERATOR),
     "calibrate_check": (op_calibrate_check, Role.OPERATOR),
+    "calibrate_latency": (op_calibrate_latency, Role.OPERATOR),
     "commissioning_status": (op_commissioning_status, Role.VIEWER),
     "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }

@@ -96,6 +96,8 @@ class Daemon:
         )
         if self.commissioning.after_write is None:  # a calibration's result takes effect now
             self.commissioning.after_write = self.reload
+        if self.commissioning.pose_at is None:  # the frames' poses, for the latency calibration
+            self.commissioning.pose_at = self._pose_at
         self.server = ControlServer(self._op_context(), config.control)
         self._stop = asyncio.Event()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -372,6 +374,15 @@ class Daemon:
             log.error("recording disabled", extra={"kv": {"dir": rec.dir, "error": exc}})
             return
         self.recorder = writer
+
+    def _pose_at(self, t_ns: int) -> tuple[float, float, float] | None:
+        """(s, pan, tilt) the frame loop's pose source gives a frame stamped t_ns, if any."""
+        registrar = getattr(self.frame_loop, "registrar", None)
+        poses = getattr(registrar, "poses", None)
+        if poses is None:
+            return None
+        pose = poses.pose_at(t_ns)
+        return (pose.s_mm, pose.pan_rad, pose.tilt_rad) if pose.ok else None
 
     def _op_context(self) -> OpContext:
         """What the control ops may see."""

@@ -111,6 +111,33 @@ class SimBoardLoop:
         return self.camera.render_board(T_c_b, self.board.board, end).image
 
 
+class PoseRecorder:
+    """The host's view of the fake trolley over time (an encoder buffer at 500 Hz)."""
+
+    def __init__(self, controller: FakeController, home_s_mm: float) -> None:
+        self.controller, self.home_s_mm = controller, home_s_mm
+        self.t: list[int] = []
+        self.rows: list[tuple[float, float, float]] = []
+
+    async def run(self) -> None:
+        while True:
+            pan, tilt = self.controller.head_rad
+            self.t.append(time.monotonic_ns())
+            self.rows.append((self.controller.position_mm + self.home_s_mm, pan, tilt))
+            del self.t[:-5000], self.rows[:-5000]
+            await asyncio.sleep(0.002)
+
+    def pose_at(self, t_ns: int) -> tuple[float, float, float] | None:
+        """Linear interpolation between the recorded samples (None outside them)."""
+        if len(self.t) < 2 or not self.t[0] <= t_ns <= self.t[-1]:
+            return None
+        i = max(int(np.searchsorted(self.t, t_ns)), 1)
+        f = (t_ns - self.t[i - 1]) / max(self.t[i] - self.t[i - 1], 1)
+        a, b = np.array(self.rows[i - 1]), np.array(self.rows[i])
+        s, pan, tilt = a + f * (b - a)
+        return float(s), float(pan), float(tilt)
+
+
 @dataclass
 class Harness:
     """A running daemon, its client, the truth and the rig file."""
@@ -141,6 +168,9 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     rig_path = tmp / "rig.toml"
     save_rig(RigSpec(), rig_path)
     env = CommissioningEnv.for_rig_file(rig_path, lambda: loop.frame_tap, tmp / "reports")
+    recorder = PoseRecorder(fake, env.home_s_mm())
+    env.pose_at = recorder.pose_at
+    recording = asyncio.create_task(recorder.run())
     config = dataclasses.replace(Config(), control=ControlConfig(socket_path=str(tmp / "ctl.sock")))
     daemon = Daemon(config, lambda c, t: fake, lambda c, ctl, sink, t: loop, commissioning=env)
     task = asyncio.create_task(daemon.run())
@@ -152,5 +182,6 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
         async with await ControlClient.connect_unix(str(tmp / "ctl.sock")) as client:
             yield Harness(daemon, client, loop, lens, rig, rig_path, tmp / "reports")
     finally:
+        recording.cancel()
         daemon.request_stop()
         await asyncio.wait_for(task, 10.0)

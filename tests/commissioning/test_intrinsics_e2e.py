@@ -147,3 +147,16 @@ async def test_commissioning_sequence_recovers_the_chain_within_three_sigma(
     check = results["calibrate_check"]
     # without cross-covariances in the rig file the budget is an upper bound (COMMISSIONING.md)
     assert check["predicted_sigma_px"] >= check["rms_px"]
+
+
+async def test_latency_from_passes_finds_the_delivery_delay(tmp_path: Path) -> None:
+    """The fake camera stamps at delivery, 20 ms + |N(0, 1 ms)| late: the run finds it."""
+    async with sim_daemon(tmp_path, seed=11) as h:
+        await h.request("home")
+        pose = {"board_pose": h.loop.board.T_w_b.tolist(), "board": BOARD.to_dict()}
+        plan = CommissioningPlan().add("calibrate_latency", station_mm=1700.0, passes=6, **pose)
+        [(_, result)] = await commission(h.client, plan)
+    assert result["passed"], result["reasons"]
+    expected_ms = h.loop.clock.delivery_s * 1e3 + 0.8  # the mean of the half-normal jitter
+    assert abs(result["latency_ms"] - expected_ms) < max(3 * result["sigma_ms"], 1.0)
+    assert load_rig(h.rig_path).camera.latency.value == pytest.approx(result["latency_ms"])
