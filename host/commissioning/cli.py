@@ -55,6 +55,15 @@ def add_parsers(subparsers: Any) -> None:
     lat.add_argument("--span", type=float, default=200.0, help="pass length, mm (default 200)")
     lat.add_argument("--passes", type=int, default=6, help="passes back and forth (default 6)")
     lat.set_defaults(handler=lambda a: run_posed(a, "calibrate_latency"))
+    survey = subparsers.add_parser("survey", help="commissioning: survey with the rangefinder")
+    ssub = survey.add_subparsers(dest="survey_command", required=True)
+    wp = _common(ssub.add_parser("workpiece", help="the workpiece frame from its feature points"))
+    aims_help = "JSON [[s_mm, pan_rad, tilt_rad], ...]: where the beam meets each feature"
+    wp.add_argument("--aims", required=True, metavar="FILE", help=aims_help)
+    model_help = "JSON [[x, y, z], ...]: the same features in the model (least squares)"
+    wp.add_argument("--model-points", metavar="FILE", help=model_help)
+    wp.add_argument("--samples", type=int, default=10, help="readings averaged per point")
+    wp.set_defaults(handler=run_survey_workpiece)
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -143,6 +152,27 @@ def run_posed(args: argparse.Namespace, op: str) -> int:
         req["max_rms_px"] = args.max_rms
     req["write"] = not args.no_write
     return follow(args, op, req)
+
+
+def run_survey_workpiece(args: argparse.Namespace) -> int:
+    """`orbitar survey workpiece --aims FILE [--model-points FILE]`."""
+    try:
+        req: dict[str, Any] = {"aims": _json(args.aims), "samples": args.samples}
+        if args.model_points:
+            req["model_points_mm"] = _json(args.model_points)
+    except (OSError, ValueError) as exc:
+        return _fail(str(exc))
+    req["write"] = not args.no_write
+    return follow(args, "survey_workpiece", req)
+
+
+def _json(path: str) -> Any:
+    """A JSON file's content (ValueError naming the file)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON: {exc}") from exc
 
 
 def follow(args: argparse.Namespace, op: str, req: dict[str, Any]) -> int:

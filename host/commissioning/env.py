@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from host.commissioning.frames import FrameTap
+from host.commissioning.frames import FrameTap, RangeTap
 from host.commissioning.jobs import JobBoard
 from host.experiments.budget import BudgetInputs, inputs_from_rig, overlay_sigma
 from host.geometry.camera import CameraModel
@@ -71,6 +71,7 @@ class CommissioningEnv:
     camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
     # the error budget's inputs and the model points it is evaluated on (None: no budget)
     budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
+    ranges: Callable[[], RangeTap | None] | None = None  # the controller's rangefinder readings
     # the daemon's own pose source: frame stamp → (s_mm, pan, tilt), None when it has none
     pose_at: Callable[[int], tuple[float, float, float] | None] | None = None
     latency_ms: Callable[[], float] = _no_home  # the exposure latency the pose source applies

@@ -18,8 +18,9 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import head_run, intrinsics_run, latency_run
+from host.commissioning import head_run, intrinsics_run, latency_run, survey_run
 from host.commissioning.env import CommissioningEnv
+from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
 from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
@@ -281,6 +282,80 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     return {"job": job.id, "kind": job.kind}
 
 
+def aims(args: Mapping[str, Any]) -> list[ViewTarget]:
+    """`aims`: [[s_mm, pan_rad, tilt_rad], ...], one per feature point (3-64)."""
+    v = args.get("aims")
+    why = f"aims = {v!r}: expected 3-{MAX_STATIONS} [s_mm, pan_rad, tilt_rad]"
+    if not isinstance(v, list) or not 3 <= len(v) <= MAX_STATIONS:
+        raise OpError("bad_args", why)
+    out = []
+    for i, a in enumerate(v):
+        if not isinstance(a, list | tuple) or len(a) != 3 or not all(_finite(x) for x in a):
+            raise OpError("bad_args", why)
+        out.append(ViewTarget(float(a[0]), float(a[1]), float(a[2]), f"P{i + 1}"))
+    return out
+
+
+async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a workpiece survey: aims, optional model_points_mm, samples, noise_mm, write."""
+    env = env_of(ctx)
+    targets = aims(args)
+    model = args.get("model_points_mm")
+    model_p = None
+    if model is not None:
+        model_p = np.array(model, dtype=np.float64) if isinstance(model, list) else np.zeros(0)
+        if model_p.shape != (len(targets), 3) or not np.isfinite(model_p).all():
+            raise OpError("bad_args", f"model_points_mm: expected {len(targets)} finite [x, y, z]")
+    samples = args.get("samples", 10)
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 200:
+        raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 200]")
+    noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
+    # where the calibrated rig puts the beam's origin (home and track surveys, ~1 mm)
+    rig_sigma = number({"rig_sigma_mm": 1.0, **args}, "rig_sigma_mm", 0.0, 100.0)
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    tap = env.ranges() if env.ranges is not None else None
+    if tap is None:
+        raise OpError("unavailable", "no rangefinder readings (the rig file lists no surfaces?)")
+    controller = ctx.controller
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        rig, _ = env.kinematics()
+        io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
+        points = await survey_run.measure(io, tap, rig, targets, samples, progress)
+        sigma = float(np.hypot(survey_run.point_sigma_mm(noise, samples), rig_sigma))
+        ok, reasons, fit = survey_run.judge(points, model_p, sigma)
+        result = survey_run.summary(ok, reasons, points, fit)
+        report = await asyncio.to_thread(
+            _write, env.report_root, "workpiece", survey_run.page(result)
+        )
+        written = None
+        if ok and fit is not None and bool(args.get("write", True)) and env.rig_path is not None:
+            update = survey_run.workpiece_update(fit, len(points))
+            await asyncio.to_thread(update_rig, env.rig_path, update, "survey workpiece")
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**result, "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("workpiece", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+class _NoCamera:
+    """The survey needs no frames: a source that never delivers one."""
+
+    def read(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
+
+
 def _write(root: Path, kind: str, page: Page) -> str:
     """A run's report directory and page."""
     return str(write_page(run_dir(root, kind), page))
@@ -324,6 +399,7 @@ COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
     "calibrate_head": (op_calibrate_head, Role.OPERATOR),
     "calibrate_check": (op_calibrate_check, Role.OPERATOR),
     "calibrate_latency": (op_calibrate_latency, Role.OPERATOR),
+    "survey_workpiece": (op_survey_workpiece, Role.OPERATOR),
     "commissioning_status": (op_commissioning_status, Role.VIEWER),
     "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }

@@ -96,6 +96,8 @@ class Daemon:
         )
         if self.commissioning.after_write is None:  # a calibration's result takes effect now
             self.commissioning.after_write = self.reload
+        if self.commissioning.ranges is None:  # the link controller's rangefinder tap
+            self.commissioning.ranges = lambda: getattr(self.controller, "range_tap", None)
         if self.commissioning.pose_at is None:  # the frames' poses, for the latency calibration
             self.commissioning.pose_at = self._pose_at
         self.server = ControlServer(self._op_context(), config.control)

@@ -17,7 +17,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from host.commissioning.frames import FrameTap
+from host.commissioning.frames import FrameTap, RangeTap
 from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
@@ -147,6 +147,7 @@ class LinkController:
         self.stream_rates_hz = dict(stream_rates_hz)
         self.head_rad: tuple[float, float] | None = None
         self.track_feed: PoseFeed | None = None  # set by frame_loop_factory; its stats join ours
+        self.range_tap = RangeTap()
         self._supervised = False  # after the first success the supervisor reconnects by itself
 
     @property
@@ -292,6 +293,7 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
     ranging = bool(rig_spec(config).hall.surfaces)
     adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
     ctrl.add_sink(RecordingSink(record_tap, adapter))
+    ctrl.add_sink(adapter.range_tap)  # the readings a workpiece survey averages
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
     return adapter
 

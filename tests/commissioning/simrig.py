@@ -16,7 +16,7 @@ import numpy as np
 from hil_sim.camera import FrameClock, PlacedBoard, SyntheticCamera
 from host.calibration.board import BoardSpec
 from host.commissioning.env import CommissioningEnv
-from host.commissioning.frames import FrameTap
+from host.commissioning.frames import FrameTap, RangeTap
 from host.config import Config, ControlConfig
 from host.control.client import ControlClient
 from host.control.fake import FakeController
@@ -138,6 +138,33 @@ class PoseRecorder:
         return float(s), float(pan), float(tilt)
 
 
+MODEL_FEATURES_P = np.array(
+    [[0, 0, 0], [400, 0, 200], [0, 300, 600], [-200, 250, 900], [0, 0, 1200]], dtype=np.float64
+)
+
+
+class FakeRangefinder:
+    """Readings at 100 Hz along the true beam to the feature it points at (1 mm noise)."""
+
+    def __init__(self, loop: SimBoardLoop, T_w_p: np.ndarray, tap: RangeTap, seed: int) -> None:
+        self.loop, self.tap = loop, tap
+        self.points_w = MODEL_FEATURES_P @ T_w_p[:3, :3].T + T_w_p[:3, 3]
+        self.rng = np.random.default_rng(seed)
+
+    async def run(self) -> None:
+        while True:
+            c = self.loop.controller
+            s = c.position_mm + self.loop.home_s_mm
+            T = self.loop.rig.T_w_r(s, *c.head_rad) @ self.loop.rig.T_r_l
+            o, z = T[:3, 3], T[:3, 2]
+            # the feature nearest the beam; its distance along the beam, as a surface there
+            off = self.points_w - o
+            lateral = np.linalg.norm(off - np.outer(off @ z, z), axis=1)
+            d = float(off[int(np.argmin(lateral))] @ z) + float(self.rng.normal(0.0, 1.0))
+            self.tap.on_range(time.monotonic_ns(), d, 1)
+            await asyncio.sleep(0.01)
+
+
 @dataclass
 class Harness:
     """A running daemon, its client, the truth and the rig file."""
@@ -149,6 +176,7 @@ class Harness:
     rig: Rig
     rig_path: Path
     report_root: Path
+    workpiece: np.ndarray  # the true T_w_p (scoring only)
 
     async def request(self, op: str, **args: Any) -> Any:
         return await self.client.request(op, **args)
@@ -171,6 +199,12 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     recorder = PoseRecorder(fake, env.home_s_mm())
     env.pose_at = recorder.pose_at
     recording = asyncio.create_task(recorder.run())
+    true_T_w_p = make_T(
+        euler_zyx(*rng.normal(0, 0.01, 3)), np.array([-300.0, -300.0, 0.0]) + rng.normal(0, 5.0, 3)
+    )
+    ranges = RangeTap()
+    env.ranges = lambda: ranges
+    ranging = asyncio.create_task(FakeRangefinder(loop, true_T_w_p, ranges, seed).run())
     config = dataclasses.replace(Config(), control=ControlConfig(socket_path=str(tmp / "ctl.sock")))
     daemon = Daemon(config, lambda c, t: fake, lambda c, ctl, sink, t: loop, commissioning=env)
     task = asyncio.create_task(daemon.run())
@@ -180,8 +214,9 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
                 break
             await asyncio.sleep(0.02)
         async with await ControlClient.connect_unix(str(tmp / "ctl.sock")) as client:
-            yield Harness(daemon, client, loop, lens, rig, rig_path, tmp / "reports")
+            yield Harness(daemon, client, loop, lens, rig, rig_path, tmp / "reports", true_T_w_p)
     finally:
         recording.cancel()
+        ranging.cancel()
         daemon.request_stop()
         await asyncio.wait_for(task, 10.0)

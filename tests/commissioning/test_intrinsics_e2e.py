@@ -14,7 +14,13 @@ from host.commissioning.client import CommissioningPlan, commission
 from host.geometry.head import Rig
 from host.geometry.transforms import R_to_rotvec, euler_zyx, make_T
 from host.rig import load_rig
-from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, sim_daemon
+from tests.commissioning.simrig import (
+    BOARD,
+    BOARD_CENTRE_W,
+    MODEL_FEATURES_P,
+    STATIONS_MM,
+    sim_daemon,
+)
 
 KEYS = ("fx", "fy", "skew", "u0", "v0", "k1", "k2")
 
@@ -160,3 +166,24 @@ async def test_latency_from_passes_finds_the_delivery_delay(tmp_path: Path) -> N
     expected_ms = h.loop.clock.delivery_s * 1e3 + 0.8  # the mean of the half-normal jitter
     assert abs(result["latency_ms"] - expected_ms) < max(3 * result["sigma_ms"], 1.0)
     assert load_rig(h.rig_path).camera.latency.value == pytest.approx(result["latency_ms"])
+
+
+async def test_survey_workpiece_by_rangefinder_recovers_the_frame_within_three_sigma(
+    tmp_path: Path,
+) -> None:
+    """Five features aimed at (picked in the camera view), ranged, fitted to the model's points."""
+    async with sim_daemon(tmp_path, seed=13) as h:
+        await h.request("home")
+        beam = Rig(track=h.rig.track, T_r_c=h.rig.T_r_l)  # aims the beam as the camera view does
+        points = MODEL_FEATURES_P @ h.workpiece[:3, :3].T + h.workpiece[:3, 3]
+        s = 1700.0
+        aims = [[s, *beam.aim(s, p)] for p in points]
+        plan = CommissioningPlan().add(
+            "survey_workpiece", aims=aims, model_points_mm=MODEL_FEATURES_P.tolist(), samples=10
+        )
+        [(_, result)] = await commission(h.client, plan)
+    assert result["passed"], result["reasons"]
+    err = local_error(np.array(result["T_w_p"]), h.workpiece)
+    sig = np.sqrt(np.diag(np.array(result["covariance"])))
+    assert np.all(np.abs(err) < 3 * sig), (err, sig)
+    assert load_rig(h.rig_path).workpiece.frame.provenance.method.startswith("survey workpiece")
