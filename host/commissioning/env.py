@@ -23,8 +23,9 @@ from host.experiments.budget import BudgetInputs, inputs_from_rig, overlay_sigma
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import load_model, manipulator_wireframe
+from host.geometry.rangefinder import RangeScene
 from host.geometry.transforms import FloatArray
-from host.rig import RigSpec, build_camera, build_kinematics, load_rig
+from host.rig import RigSpec, build_camera, build_kinematics, build_scene, load_rig
 from host.rig.store import current_rig
 
 if TYPE_CHECKING:
@@ -43,6 +44,10 @@ def _no_frames() -> FrameTap | None:
 
 def _default_kinematics() -> tuple[Rig, CameraModel]:
     return Rig(), CameraModel()
+
+
+def _no_scene() -> RangeScene | None:
+    return None
 
 
 def _no_home() -> float:
@@ -72,6 +77,7 @@ class CommissioningEnv:
     # the error budget's inputs and the model points it is evaluated on (None: no budget)
     budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
     ranges: Callable[[], RangeTap | None] | None = None  # the controller's rangefinder readings
+    scene: Callable[[], RangeScene | None] = _no_scene  # the rig file's surveyed surfaces
     # the daemon's own pose source: frame stamp → (s_mm, pan, tilt), None when it has none
     pose_at: Callable[[int], tuple[float, float, float] | None] | None = None
     latency_ms: Callable[[], float] = _no_home  # the exposure latency the pose source applies
@@ -127,8 +133,11 @@ class CommissioningEnv:
         def latency() -> float:
             return float(load().camera.latency.value)
 
+        def scene() -> RangeScene | None:
+            return build_scene(load())
+
         return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov,
-                   budget=budget, latency_ms=latency)  # fmt: skip
+                   budget=budget, latency_ms=latency, scene=scene)  # fmt: skip
 
     @classmethod
     def for_rig_file(

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import head_run, intrinsics_run, latency_run, survey_run
+from host.commissioning import head_run, home_run, intrinsics_run, latency_run, survey_run
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBusyError, Progress
@@ -346,6 +346,53 @@ async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     return {"job": job.id, "kind": job.kind}
 
 
+async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a home survey: pan_rad, tilt_rad aiming the beam at an end wall; samples."""
+    env = env_of(ctx)
+    pan = number(args, "pan_rad", *ctx.pan_limits_rad)
+    tilt = number(args, "tilt_rad", *ctx.tilt_limits_rad)
+    samples = args.get("samples", 20)
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 500:
+        raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 500]")
+    noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
+    wall = number({"wall_sigma_mm": 1.0, **args}, "wall_sigma_mm", 0.0, 100.0)
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    tap = env.ranges() if env.ranges is not None else None
+    scene = env.scene()
+    if tap is None or scene is None:
+        raise OpError(
+            "unavailable", "no rangefinder readings or no surveyed surfaces in the rig file"
+        )
+    controller = ctx.controller
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        rig, _ = env.kinematics()
+        io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
+        result = await home_run.survey_home(
+            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress
+        )
+        report = await asyncio.to_thread(
+            _write, env.report_root, "home", home_run.home_page(result)
+        )
+        written = None
+        if result["passed"] and bool(args.get("write", True)) and env.rig_path is not None:
+            await asyncio.to_thread(
+                update_rig, env.rig_path, home_run.home_update(result, samples), "survey home"
+            )
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**result, "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("home", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
 class _NoCamera:
     """The survey needs no frames: a source that never delivers one."""
 
@@ -400,6 +447,7 @@ COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
     "calibrate_check": (op_calibrate_check, Role.OPERATOR),
     "calibrate_latency": (op_calibrate_latency, Role.OPERATOR),
     "survey_workpiece": (op_survey_workpiece, Role.OPERATOR),
+    "survey_home": (op_survey_home, Role.OPERATOR),
     "commissioning_status": (op_commissioning_status, Role.VIEWER),
     "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }

@@ -23,8 +23,9 @@ from host.control.fake import FakeController
 from host.frames.sources import Frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
+from host.geometry.rangefinder import RangeScene, hall_walls
 from host.geometry.transforms import euler_zyx, make_T, rot_x
-from host.rig import RigSpec, save_rig
+from host.rig import HallSpec, RigSpec, Scalar, SurfaceSpec, save_rig
 from host.service.daemon import Daemon
 
 FPS = 15.0
@@ -143,6 +144,20 @@ MODEL_FEATURES_P = np.array(
 )
 
 
+FEATURE_RADIUS_MM = 30.0
+HOME_MM = 150.0  # the home switch's arc length in the rig file (surveyed, σ 1 mm)
+HALL_X_MM, HALL_Y_MM = (-6000.0, 6000.0), (-4500.0, 4500.0)
+# the hall as built: its survey (the rig file) is within a millimetre of it
+TRUE_HALL = RangeScene(hall_walls((HALL_X_MM[0] + 0.4, HALL_X_MM[1] - 0.3), HALL_Y_MM))
+
+
+def surveyed_hall() -> HallSpec:
+    """The rig file's survey of the hall's walls."""
+    return HallSpec(
+        tuple(SurfaceSpec(w.name, w.point_w, w.normal_w) for w in hall_walls(HALL_X_MM, HALL_Y_MM))
+    )
+
+
 class FakeRangefinder:
     """Readings at 100 Hz along the true beam to the feature it points at (1 mm noise)."""
 
@@ -157,11 +172,18 @@ class FakeRangefinder:
             s = c.position_mm + self.loop.home_s_mm
             T = self.loop.rig.T_w_r(s, *c.head_rad) @ self.loop.rig.T_r_l
             o, z = T[:3, 3], T[:3, 2]
-            # the feature nearest the beam; its distance along the beam, as a surface there
+            # a feature on the beam (a surface there), else the hall's walls
             off = self.points_w - o
             lateral = np.linalg.norm(off - np.outer(off @ z, z), axis=1)
-            d = float(off[int(np.argmin(lateral))] @ z) + float(self.rng.normal(0.0, 1.0))
-            self.tap.on_range(time.monotonic_ns(), d, 1)
+            hit = TRUE_HALL.cast(o, z)
+            if lateral.min() < FEATURE_RADIUS_MM:
+                d = float(off[int(np.argmin(lateral))] @ z)
+            elif hit is not None:
+                d = hit.distance_mm
+            else:
+                await asyncio.sleep(0.01)
+                continue
+            self.tap.on_range(time.monotonic_ns(), d + float(self.rng.normal(0.0, 1.0)), 1)
             await asyncio.sleep(0.01)
 
 
@@ -191,10 +213,12 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     fake = FakeController()
     sim = SyntheticCamera(lens, seed=seed, blur_samples=4)
     # where the home switch truly is: the rig file's survey, off by its σ
-    home = RigSpec().track.home.value + float(rng.normal(0.0, 0.3))
+    home = HOME_MM + float(rng.normal(0.0, 0.3))
     loop = SimBoardLoop(fake, rig, sim, placed, FrameClock(seed=seed), blur_mm, home)
     rig_path = tmp / "rig.toml"
-    save_rig(RigSpec(), rig_path)
+    nominal = RigSpec()
+    track = dataclasses.replace(nominal.track, home=Scalar(HOME_MM, 1.0))
+    save_rig(dataclasses.replace(nominal, hall=surveyed_hall(), track=track), rig_path)
     env = CommissioningEnv.for_rig_file(rig_path, lambda: loop.frame_tap, tmp / "reports")
     recorder = PoseRecorder(fake, env.home_s_mm())
     env.pose_at = recorder.pose_at

@@ -187,3 +187,20 @@ async def test_survey_workpiece_by_rangefinder_recovers_the_frame_within_three_s
     sig = np.sqrt(np.diag(np.array(result["covariance"])))
     assert np.all(np.abs(err) < 3 * sig), (err, sig)
     assert load_rig(h.rig_path).workpiece.frame.provenance.method.startswith("survey workpiece")
+
+
+async def test_survey_home_against_the_end_wall(tmp_path: Path) -> None:
+    """The beam along the track onto the hall's end wall fixes where the controller's zero is."""
+    async with sim_daemon(tmp_path, seed=14) as h:
+        await h.request("home")
+        await h.request("move", position_mm=300.0, speed_mm_s=1500.0)
+        await asyncio.sleep(0.5)
+        s = 300.0 + h.loop.home_s_mm
+        beam = Rig(track=h.rig.track, T_r_c=h.rig.T_r_l)
+        pan, tilt = beam.aim(s, [-6000.0, -1500.0, 4000.0])  # level, back along the first straight
+        plan = CommissioningPlan().add("survey_home", pan_rad=pan, tilt_rad=tilt, samples=20)
+        [(_, result)] = await commission(h.client, plan)
+    assert result["passed"], result["reasons"]
+    # the true home (the harness's) within 3σ; the wall itself is 0.4 mm off its survey
+    assert abs(result["home_mm"] - h.loop.home_s_mm) < 3 * result["sigma_mm"]
+    assert load_rig(h.rig_path).track.home.value == pytest.approx(result["home_mm"])
