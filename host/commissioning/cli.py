@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import sys
 from typing import Any, TextIO
 
@@ -64,6 +65,11 @@ def add_parsers(subparsers: Any) -> None:
     wp.add_argument("--model-points", metavar="FILE", help=model_help)
     wp.add_argument("--samples", type=int, default=10, help="readings averaged per point")
     wp.set_defaults(handler=run_survey_workpiece)
+    home = _common(ssub.add_parser("home", help="the controller's zero on the track, from a wall"))
+    home.add_argument("pan_deg", type=float, help="head pan putting the beam on an end wall")
+    home.add_argument("tilt_deg", type=float, help="head tilt")
+    home.add_argument("--samples", type=int, default=20, help="readings averaged")
+    home.set_defaults(handler=run_survey_home)
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -164,6 +170,13 @@ def run_survey_workpiece(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     req["write"] = not args.no_write
     return follow(args, "survey_workpiece", req)
+
+
+def run_survey_home(args: argparse.Namespace) -> int:
+    """`orbitar survey home PAN_DEG TILT_DEG` (degrees here, radians on the socket)."""
+    req = {"pan_rad": math.radians(args.pan_deg), "tilt_rad": math.radians(args.tilt_deg)}
+    req.update(samples=args.samples, write=not args.no_write)
+    return follow(args, "survey_home", req)
 
 
 def _json(path: str) -> Any:
