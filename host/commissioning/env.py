@@ -10,6 +10,7 @@ writes nothing. Reports go to `report_root`.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_REPORT_ROOT = Path("orbitar-commissioning")
 BUILTIN_MODEL = "builtin:manipulator"
+BUDGET_CACHE_S = 2.0
 REPORT_DIR = "commissioning"  # beside the rig file
 
 
@@ -84,11 +86,31 @@ class CommissioningEnv:
     # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
     after_write: Callable[[], Awaitable[Any]] | None = None
 
+    _budget_cache: tuple[tuple[float, float, float], float, float | None] | None = field(
+        default=None, init=False, repr=False
+    )
+
     def overlay_sigma_px(self, snapshot: Mapping[str, Any]) -> float | None:
-        """Predicted overlay σ at the controller's current pose; None when unknown (logged)."""
+        """Predicted overlay σ at the controller's pose (None when unknown, logged).
+
+        It costs some tens of milliseconds on the daemon's loop, so a result is reused while
+        the pose stays within 1 mm and 1 mrad for up to BUDGET_CACHE_S.
+        """
         pos, head = snapshot.get("position_mm"), snapshot.get("head_rad")
         if pos is None or not head:
             return None
+        key = (round(float(pos)), round(float(head[0]) * 1e3), round(float(head[1]) * 1e3))
+        now = time.monotonic()
+        cached = self._budget_cache
+        if cached is not None and cached[0] == key and now - cached[1] < BUDGET_CACHE_S:
+            return cached[2]
+        value = self._overlay_sigma(float(pos), float(head[0]), float(head[1]))
+        self._budget_cache = (key, now, value)
+        return value
+
+    def _overlay_sigma(self, pos: float, pan: float, tilt: float) -> float | None:
+        """The budget at one pose."""
+        head = (pan, tilt)
         try:
             got = self.budget()
             if got is None:
