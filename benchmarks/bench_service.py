@@ -24,12 +24,12 @@ import msgpack
 from host.config import ControlConfig
 from host.control.api import PoseSample
 from host.control.client import ControlClient
-from host.control.fake import FakeController
 from host.control.ops import OpContext
 from host.control.server import ControlServer
 from host.control.wire import pack, read_message
 from host.outputs.freed import encode_d1, pose_to_freed
 from host.recording import RecordingReader, RecordingWriter
+from tests.fakes import MemoryController
 
 POSE = PoseSample(
     1, ((1.0, 0, 0, 1500.0), (0, 0, 1.0, 300.0), (0, -1.0, 0, 4000.0), (0, 0, 0, 1.0)), "MOVING"
@@ -174,7 +174,7 @@ async def _flood_metrics() -> None:
 async def _socket_metrics(args: argparse.Namespace) -> None:
     """Everything that needs the event loop."""
     with tempfile.TemporaryDirectory() as tmp:
-        fake = FakeController()
+        fake = MemoryController()
         await fake.connect()
         config = ControlConfig(socket_path=f"{tmp}/c.sock", queue_max=args.poses)
         server = ControlServer(OpContext(fake, latest_pose=lambda: POSE), config)
@@ -202,7 +202,7 @@ def _recording_rates(n: int) -> tuple[float, float, float]:
     """Records written/s to rotating files, read back/s, and a plain in-memory dump/s."""
     data = POSE.to_dict()
     with tempfile.TemporaryDirectory() as tmp:
-        writer = RecordingWriter(Path(tmp), rotate_mb=8, keep_files=100)
+        writer = RecordingWriter(Path(tmp), rotate_mb=8, keep_files=100, drop_when_full=False)
         writer.open()
         t0 = time.perf_counter()
         for i in range(n):

@@ -345,11 +345,13 @@ def connection_text(options: SimOptions, emulator: Emulator) -> list[str]:
     """What to tell the user: where to connect and the daemon's [link] lines."""
     head = [
         f"orbitar sim: emulated controller running (link {options.link}, seed {options.seed}, "
-        f"speed {options.speed:g}x)"
+        f"speed {options.speed:g}x, rig {options.rig or 'the paper runway'}"
+        f"{', with seeded tolerances' if options.tolerances else ''})"
     ]
     link = link_lines(options, emulator)
     tail = ["press Ctrl-C (or send SIGTERM) to stop"]
-    return head + [f"connect: {link[0]}", "daemon configuration:"] + link[1] + tail
+    rig = [] if options.rig is None else ["  [rig]", f'  path = "{options.rig}"']
+    return head + [f"connect: {link[0]}", "daemon configuration:"] + link[1] + rig + tail
 
 
 def link_lines(options: SimOptions, emulator: Emulator) -> tuple[str, list[str]]:

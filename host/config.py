@@ -10,7 +10,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import re
+import stat
 import tomllib
 import typing
 from collections.abc import Mapping
@@ -21,12 +23,16 @@ from typing import Any
 from host.config_bus import BusConfig, bus_problems
 from host.config_fields import (
     ConfigError,
+    check_text,
+    deepest_nesting,
     parse_destination,
     parse_mode,
     parse_regex,
     parse_source,
     parse_vector3,
+    shown,
     spec,
+    toml_key,
 )
 from host.config_opentrackio import OpenTrackIOConfig, opentrackio_problems
 from host.config_rig import RigConfig
@@ -35,6 +41,7 @@ LINK_KINDS = ("serial", "xbee", "can")
 LOG_LEVELS = ("debug", "info", "warning", "error", "critical")
 MIN_TOKEN_CHARS = 16  # control tokens: long enough that guessing through hello is hopeless
 XBEE_ADDRESS_RE = re.compile(r"^[0-9A-Fa-f]{16}$")
+CONFIG_MAX_BYTES = 4 << 20  # the default file is ~10 kB; a rig with thousands of segments fits
 
 
 @dataclass(frozen=True)
@@ -202,7 +209,14 @@ class Config:
 def load_config(path: str | Path) -> Config:
     """Read and validate a TOML file; ConfigError lists every problem."""
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        # O_NONBLOCK: opening a FIFO must not wait for a writer (no effect on a regular file).
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as file:
+            if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
+                raise ConfigError([f"{path}: not a regular file"])
+            data = file.read(CONFIG_MAX_BYTES + 1)  # bounded: /dev/zero or a huge file is refused
+        if len(data) > CONFIG_MAX_BYTES:
+            raise ConfigError([f"{path}: larger than {CONFIG_MAX_BYTES} bytes"])
+        text = data.decode("utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError([f"{path}: cannot read: {exc}"]) from exc
     return loads_config(text)
@@ -214,6 +228,12 @@ def loads_config(text: str) -> Config:
         table = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError([f"TOML syntax: {exc}"]) from exc
+    except RecursionError as exc:  # tomllib recurses once per nested array or inline table
+        key, depth = deepest_nesting(text)
+        reason = f"arrays or inline tables nested {depth} deep, too deep to read"
+        raise ConfigError([f"{key or 'TOML'}: {reason}"]) from exc
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise ConfigError([f"TOML value: {exc}"]) from exc
     return config_from_dict(table)
 
 
@@ -233,7 +253,8 @@ def _build(cls: type, table: Mapping[str, Any], prefix: str, errors: list[str]) 
     fields = {f.metadata.get("key") or f.name: f for f in dataclasses.fields(cls)}
     for key in table:
         if key not in fields:
-            errors.append(f"{prefix}{key}: unknown key (known: {', '.join(sorted(fields))})")
+            known = ", ".join(sorted(fields))
+            errors.append(f"{prefix}{toml_key(key)}: unknown key (known: {known})")
     values: dict[str, Any] = {}
     for key, fld in fields.items():
         if key in table:
@@ -250,7 +271,7 @@ def _convert(
     origin = typing.get_origin(hint)
     if dataclasses.is_dataclass(hint):
         if not isinstance(value, dict):
-            errors.append(f"{key} = {value!r}: expected a table")
+            errors.append(f"{key} = {shown(value)}: expected a table")
             return None
         return _build(typing.cast(type, hint), value, key + ".", errors)
     if origin is tuple and dataclasses.is_dataclass(typing.get_args(hint)[0]):
@@ -259,15 +280,15 @@ def _convert(
         return _convert_list(fld, value, key, errors)
     try:
         return _check_scalar(hint, fld.metadata, value)
-    except ValueError as exc:
-        errors.append(f"{key} = {value!r}: {exc}")
+    except (ValueError, OverflowError) as exc:
+        errors.append(f"{key} = {shown(value)}: {exc}")
         return None
 
 
 def _convert_table_array(cls: Any, value: Any, key: str, errors: list[str]) -> Any:
     """An array of tables such as [[track.segments]]."""
     if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
-        errors.append(f"{key} = {value!r}: expected an array of tables")
+        errors.append(f"{key} = {shown(value)}: expected an array of tables")
         return None
     return tuple(_build(cls, v, f"{key}[{i}].", errors) for i, v in enumerate(value))
 
@@ -275,14 +296,14 @@ def _convert_table_array(cls: Any, value: Any, key: str, errors: list[str]) -> A
 def _convert_list(fld: dataclasses.Field[Any], value: Any, key: str, errors: list[str]) -> Any:
     """A list whose items each pass the field's parser."""
     if not isinstance(value, list):
-        errors.append(f"{key} = {value!r}: expected a list")
+        errors.append(f"{key} = {shown(value)}: expected a list")
         return None
     out = []
     for i, item in enumerate(value):
         try:
             out.append(fld.metadata["parse"](item))
-        except ValueError as exc:
-            errors.append(f"{key}[{i}] = {item!r}: {exc}")
+        except (ValueError, OverflowError) as exc:
+            errors.append(f"{key}[{i}] = {shown(item)}: {exc}")
     return tuple(out)
 
 
@@ -308,9 +329,11 @@ def _check_type(hint: Any, value: Any) -> Any:
     if isinstance(value, bool):
         raise ValueError(f"expected {hint.__name__}, got a boolean")
     if hint is float and isinstance(value, int | float):
-        return float(value)
+        return float(value)  # OverflowError for an int beyond float: reported by the caller
     if not isinstance(value, hint):
         raise ValueError(f"expected {hint.__name__}, got {type(value).__name__}")
+    if isinstance(value, str):
+        check_text(value)
     return value
 
 

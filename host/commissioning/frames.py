@@ -109,3 +109,11 @@ async def wait_ranges(tap: RangeTap, after_ns: int, count: int, timeout_s: float
                 f"rangefinder: {len(got)} of {count} readings within {timeout_s:.1f} s"
             )
         await asyncio.sleep(POLL_S)
+
+
+def attach_range_tap(controller: object) -> RangeTap:
+    """A RangeTap on a controller's samples, kept as its `range_tap` for the commissioning."""
+    tap = RangeTap()
+    controller.add_sink(tap)  # type: ignore[attr-defined]
+    setattr(controller, "range_tap", tap)  # noqa: B010
+    return tap

@@ -1,8 +1,9 @@
-"""The small interfaces the service layer is built against, so the real objects plug in later.
+"""What the service layer is typed against: poses, the controller's surface, the frame loop.
 
-`ControllerLike` is the part of `host.link.Controller` the daemon and the control socket call;
-`FrameLoopLike` is the frame loop (camera → pose → overlay) seen from the daemon. Both are
-structural Protocols: the lead wires the real classes (or a thin adapter) without inheritance.
+`host.link.Controller` is the one controller; the daemon, the control operations and the
+outputs call it directly. `ControllerLike` is nothing but its public surface written down as a
+structural type, so that test doubles (tests/fakes.py) are checked against the same methods;
+there is no adapter between them. `FrameLoopLike` is the frame loop seen from the daemon.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 import numpy.typing as npt
 
-from protocol import ParamId
+from host.link.snapshot import Listener
 
 Matrix4 = Sequence[Sequence[float]] | npt.NDArray[np.float64]
 
@@ -28,6 +29,7 @@ class PoseSample:
     state: str  # controller state name when the pose was computed
     s_mm: float | None = None  # trolley arc length along the track, if known
     frame_index: int = 0
+    homed: bool = False  # the controller's position was referenced to home (else: flagged)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain types for msgpack events and recordings."""
@@ -37,6 +39,7 @@ class PoseSample:
             "state": self.state,
             "s_mm": self.s_mm,
             "frame_index": self.frame_index,
+            "homed": self.homed,
         }
 
     @classmethod
@@ -50,31 +53,41 @@ class PoseSample:
             str(data["state"]),
             None if s_mm is None else float(s_mm),
             int(data.get("frame_index", 0)),
+            bool(data.get("homed", False)),
         )
 
 
 @runtime_checkable
 class ControllerLike(Protocol):
-    """The controller API the service calls (host.link.Controller provides it)."""
+    """The public surface of `host.link.Controller` (its only production implementation)."""
 
     @property
     def connected(self) -> bool:
         """True while the session with the controller is up."""
         ...
 
-    async def connect(self) -> None:
-        """Open the link and handshake; raises when the controller is not reachable."""
+    @property
+    def link_error(self) -> str:
+        """Why the link is not up (empty while it is)."""
+        ...
+
+    def start(self) -> None:
+        """Connect in the background and keep the link up; never raises."""
+
+    def subscribe(self, listener: Listener) -> Callable[[], None]:
+        """Push every link and controller-state change to `listener`; returns the unsubscriber."""
+        ...
 
     async def close(self) -> None:
         """Close the link."""
 
-    async def home(self) -> None:
-        """Start homing."""
+    async def home(self) -> object:
+        """Start homing (at the controller's HOME_SPEED)."""
 
-    async def move_to(self, position_mm: float, speed_mm_s: float | None = None) -> None:
-        """Absolute move along the track."""
+    async def move_to(self, mm: float, speed_mm_s: float | None = None) -> object:
+        """Absolute move along the track (the default speed when None)."""
 
-    async def jog(self, velocity_mm_s: float) -> None:
+    async def jog(self, mm_s: float) -> object:
         """Constant-velocity motion; 0 stops."""
 
     async def stop(self) -> None:
@@ -89,18 +102,18 @@ class ControllerLike(Protocol):
     async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
         """Point the pan/tilt head."""
 
-    async def get_param(self, param: ParamId) -> int:
+    async def get_param(self, param_id: int) -> int:
         """Read a controller parameter."""
         ...
 
-    async def set_param(self, param: ParamId, value: int) -> None:
+    async def set_param(self, param_id: int, value: int) -> object:
         """Write a controller parameter (RAM only)."""
 
     async def persist_params(self) -> None:
         """Store the parameters in flash."""
 
     def snapshot(self) -> Mapping[str, Any]:
-        """The latest controller state as plain values (state, faults, position_mm, …)."""
+        """The latest controller state as plain values (state, faults, position_mm, age_s, …)."""
         ...
 
     def link_stats(self) -> Mapping[str, Any]:

@@ -1,4 +1,4 @@
-"""CLI subcommands that talk to the running daemon, plus config, systemd-unit, daemon and replay.
+"""CLI subcommands that talk to the running daemon, plus config and systemd-unit.
 
 `add_parsers(subparsers)` registers them all; each parser sets `handler`, so host/cli.py runs
 `args.handler(args)` and exits with its return value: 0 on success, 1 when the daemon is not
@@ -18,12 +18,9 @@ import sys
 from collections.abc import Callable
 from typing import Any, TextIO
 
-from host.config import Config, default_config_text, load_config
-from host.config_fields import ConfigError
+from host.config import Config, default_config_text
 from host.control.client import ControlClient, ControlRequestError
-from host.service import main as daemon_cmd
-from host.service.replay_registration import add_parser as add_replay_parser
-from host.service.unit import DEFAULT_CONFIG, render_unit
+from host.service.unit import DEFAULT_CONFIG, installed_executable, render_unit
 
 SOCKET_ENV = "ORBITAR_SOCKET"
 CLEAR_SCREEN = "\x1b[H\x1b[2J"
@@ -47,6 +44,7 @@ def add_parsers(subparsers: Any) -> None:
     }
     for name, text in simple.items():
         _socket_parser(subparsers, name, text).set_defaults(handler=_op_handler(name))
+    subparsers.choices["status"].set_defaults(handler=run_status)
     move = _socket_parser(subparsers, "move", "move the trolley to an arc length")
     move.add_argument("mm", type=float, help="target position along the track, mm")
     move.add_argument("--speed", type=float, help="cruise speed, mm/s")
@@ -78,8 +76,6 @@ def _add_offline_parsers(subparsers: Any) -> None:
     unit.add_argument("--exec", dest="executable", help="path of the orbitar executable")
     unit.add_argument("--config", default=DEFAULT_CONFIG, help="config path for ExecStart")
     unit.set_defaults(handler=run_systemd_unit)
-    daemon_cmd.add_parser(subparsers)
-    add_replay_parser(subparsers)
 
 
 def _socket_parser(subparsers: Any, name: str, text: str) -> argparse.ArgumentParser:
@@ -113,16 +109,32 @@ def run_head(args: argparse.Namespace) -> int:
 
 def request(args: argparse.Namespace, op: str, **op_args: Any) -> int:
     """Send one request and print its result; 1 with a clear message on any failure."""
+    return _request(args, op, op_args)[0]
+
+
+LINK_DOWN_EXIT = 3  # `orbitar status`: the daemon answers, but its controller data is stale
+
+
+def run_status(args: argparse.Namespace) -> int:
+    """`orbitar status`: as any request, but 3 while the controller link is down."""
+    code, result = _request(args, "status", {})
+    if code == 0 and isinstance(result, dict) and result.get("link_up") is False:
+        return LINK_DOWN_EXIT
+    return code
+
+
+def _request(args: argparse.Namespace, op: str, op_args: dict[str, Any]) -> tuple[int, Any]:
+    """Send one request and print its result: (exit code, result)."""
     try:
         result = asyncio.run(_one_request(args.socket, op, op_args))
     except (ConnectionError, FileNotFoundError) as exc:
-        return _fail(f"daemon not running? cannot reach {args.socket}: {exc}")
+        return _fail(f"daemon not running? cannot reach {args.socket}: {exc}"), None
     except ControlRequestError as exc:
-        return _fail(f"{op} refused: {exc}")
+        return _fail(f"{op} refused: {exc}"), None
     except TimeoutError:
-        return _fail(f"{op}: no reply from the daemon")
+        return _fail(f"{op}: no reply from the daemon"), None
     emit(_result_text(result, getattr(args, "json", False)))
-    return 0
+    return 0, result
 
 
 def _result_text(result: Any, as_json: bool) -> str:
@@ -215,14 +227,15 @@ def _render(view: dict[str, Any], out: TextIO) -> None:
 
 
 def run_config_check(args: argparse.Namespace) -> int:
-    """`orbitar config check PATH`."""
-    from host.rig import current_rig
+    """`orbitar config check PATH`: the file, then every check the daemon's start makes."""
+    from host.service.preflight import check_file
 
-    try:
-        config = load_config(args.path)
-        current_rig(config.rig.path)  # the rig file it names must load too
-    except ConfigError as exc:
-        print(f"{args.path}: {exc}", file=sys.stderr)
+    _, report = check_file(args.path)
+    for note in report.notes:
+        print(f"{args.path}: note: {note}", file=sys.stderr)
+    if not report.ok:
+        problems = "\n  ".join(report.errors)
+        print(f"{args.path}: invalid configuration:\n  {problems}", file=sys.stderr)
         return 2
     emit(f"{args.path}: ok\n")
     return 0
@@ -236,7 +249,10 @@ def run_config_default(args: argparse.Namespace) -> int:
 
 def run_systemd_unit(args: argparse.Namespace) -> int:
     """`orbitar systemd-unit [--exec PATH] [--config PATH]`."""
-    executable = args.executable or "/usr/bin/orbitar"
+    try:
+        executable = args.executable or installed_executable()
+    except FileNotFoundError as exc:
+        return _fail(str(exc))
     emit(render_unit(executable, args.config))
     return 0
 

@@ -105,8 +105,11 @@ def param_id(args: Mapping[str, Any]) -> ParamId:
 
 def _controller(ctx: OpContext) -> ControllerLike:
     """The controller, or `unavailable` while the link is down."""
-    if ctx.controller is None or not ctx.controller.connected:
+    if ctx.controller is None:
         raise OpError("unavailable", "the controller link is not up")
+    if not ctx.controller.connected:
+        cause = ctx.controller.link_error
+        raise OpError("unavailable", f"the controller link is not up: {cause or 'closed'}")
     return ctx.controller
 
 

@@ -29,6 +29,7 @@ from host.service.daemon import Daemon
 SOCKET_NAME = "control.sock"
 START_TIMEOUT_S = 10.0
 STOP_TIMEOUT_S = 10.0
+HEARTBEAT_MS = 100
 
 
 @dataclass
@@ -38,6 +39,7 @@ class RunningDaemon:
     daemon: Daemon
     socket_path: Path
     config_path: Path
+    rig_path: Path
 
     async def reload(self) -> list[str]:
         """What SIGHUP does: reread the config and the rig file; the sections applied."""
@@ -46,7 +48,9 @@ class RunningDaemon:
 
 def daemon_config_text(world: SimWorld, rig_path: Path, workdir: Path) -> str:
     """The daemon's TOML for this simulated rig: its link, the rig file, a private socket."""
-    link = _link_table(world)
+    # Heartbeats at 100 ms: five per controller watchdog period (500 ms), as the demo's own
+    # link has, so a busy machine does not stop the trolley mid-calibration.
+    link = _link_table(world) + f"\nheartbeat_ms = {HEARTBEAT_MS}"
     return (
         f'{link}\n[rig]\npath = {_q(rig_path)}\n[camera]\nsource = "sim"\n'
         f"[control]\nsocket_path = {_q(workdir / SOCKET_NAME)}\n"
@@ -69,7 +73,7 @@ async def running_daemon(
     socket_path = workdir / SOCKET_NAME
     try:
         await _wait_for(socket_path, task)
-        yield RunningDaemon(daemon, socket_path, config_path)
+        yield RunningDaemon(daemon, socket_path, config_path, rig_path)
     finally:
         daemon.request_stop()
         with contextlib.suppress(Exception):

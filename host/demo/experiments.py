@@ -31,6 +31,7 @@ from host.geometry.transforms import make_T
 from host.link import Controller
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
+from protocol.enums import Fault, State
 
 FloatArray = NDArray[np.float64]
 Progress = Callable[[str, float], None]
@@ -52,12 +53,15 @@ HEAD_TIMEOUT_S = 10.0
 HEAD_TOLERANCE_RAD = 2e-3
 ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
 MAX_FRAMES = 4  # frames per wanted observation before the point gives up
+BLANK_PX = 2  # a frame the camera did not render (SimCameraSource.render_every)
 FIT_MARGIN_MM = 150.0  # keep the runs this far from an open track's limit switch
 STILL_MM = 0.07  # about one encoder count (0.0635 mm): a standing trolley moves less than this
 STILL_WINDOW_S = 0.25  # ... for this long (the rotor's ring-down after a stop is ~0.2 s)
 STILL_POLL_S = 0.01
 STILL_TIMEOUT_S = 3.0
 UM_PER_MM = 1000.0
+STATUS_WAIT_S = 0.3  # STATUS streams at 2-20 Hz and is sent on every state change
+SURVEY_SALT = 0x5A11  # the simulated surveys' noise stream, apart from the plant's
 
 
 @dataclass(frozen=True)
@@ -160,8 +164,15 @@ class Bench:
     latency_ns: int = 0
     home_survey_sigma_mm: float = 0.0
     survey_seed: int = 0
+    survey_rng: np.random.Generator = field(init=False)
+    # the error budget's predicted overlay σ (px) of the model's centre at (s, pan, tilt)
+    predicted_px: Callable[[float, float, float], float] | None = None
+    home_truth_mm: float | None = None  # true arc length of the zero (scoring only)
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.survey_rng = np.random.default_rng([self.survey_seed, SURVEY_SALT])
 
     def registrars(self) -> tuple[Registrar, Registrar]:
         """Encoder-only (draws the overlay) and fused (scored only)."""
@@ -209,11 +220,23 @@ class Bench:
         await asyncio.sleep(SETTLE_S)
 
 
-async def start_host(bench: Bench, link: str) -> None:
-    """Streams on at what the link carries, then home."""
+async def start_host(bench: Bench, link: str) -> list[str]:
+    """Streams on at what the link carries, then home; the latched faults it had to clear.
+
+    Only a WATCHDOG fault is cleared (a host that went quiet before, e.g. the commissioning
+    daemon on a starved machine); any other fault or an e-stop stops the run, as it would stop
+    an operator.
+    """
     await bench.ctrl.set_streams(STREAM_RATES_HZ[link])
+    await asyncio.sleep(STATUS_WAIT_S)  # a STATUS has arrived: the snapshot is current
+    snap = bench.ctrl.snapshot()
+    cleared: list[str] = []
+    if snap.state is State.FAULT and snap.faults == Fault.WATCHDOG:
+        await bench.ctrl.clear_fault()
+        cleared.append("WATCHDOG")
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
+    return cleared
 
 
 async def wait_still(bench: Bench) -> None:
@@ -251,9 +274,9 @@ async def survey_home(bench: Bench, world: SimWorld) -> float:
         return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
 
     surveyed = float(world.with_truth(simultaneous))
-    if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, once per survey
-        rng = np.random.default_rng([bench.survey_seed, round(surveyed * 1e3)])
-        surveyed += float(rng.normal(0.0, bench.home_survey_sigma_mm))
+    bench.home_truth_mm = surveyed  # scoring only
+    if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, a new draw each time
+        surveyed += float(bench.survey_rng.normal(0.0, bench.home_survey_sigma_mm))
     return surveyed
 
 
@@ -281,9 +304,12 @@ async def static_experiment(
             "offset_px": summary([sc.error_px for sc in scores]),
             "frames": len(results),
         }
-        last = results[-1][0]
-        if last.image is not None:
-            bench.snapshots.append((f"Observation point {offset:.0f} mm", last.image))
+        if bench.predicted_px is not None:
+            pan, tilt = bench.rig.aim(s, target)
+            rows[f"{offset:.0f}"]["predicted_sigma_px"] = bench.predicted_px(s, pan, tilt)
+        drawn = [r for r, _ in results if r.image is not None and r.image.shape[0] > BLANK_PX]
+        if drawn:
+            bench.snapshots.append((f"Observation point {offset:.0f} mm", drawn[-1].image))
     return rows
 
 

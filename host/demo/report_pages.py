@@ -92,7 +92,13 @@ def mode_text(results: dict[str, Any]) -> str:
             "description, so the host computes with the true calibration (only the chain and "
             "the home survey are measured)."
         )
-    how = "commissioned parameters" if mode.get("commissioned") else "nominal values only"
+    calibrated = mode.get("calibrated") or []
+    if mode.get("commissioned"):
+        how = "commissioned parameters"
+    elif calibrated:
+        how = f"a partly commissioned rig (measured: {', '.join(calibrated)}; the rest nominal)"
+    else:
+        how = "nominal values only"
     return (
         f"Rig: {results.get('rig', '?')}; tolerances on: the simulated rig is off its "
         f"description by seeded installation tolerances; the host computes with {how}."
@@ -122,6 +128,16 @@ def summary_text(results: dict[str, Any]) -> str:
         lines.append(
             f"Calibrated parameters within 3 σ of the truth: {within} of {len(cal)} "
             f"(worst {worst[0]}: {float(worst[5]):.1f} σ)"
+        )
+    predicted = [
+        (point, row["predicted_sigma_px"], row["offset_px"]["mean"])
+        for point, row in results["static"].items()
+        if "predicted_sigma_px" in row
+    ]
+    if predicted:
+        lines.append(
+            "Predicted overlay σ (error budget of the host's rig file) beside the measured "
+            "offset: " + "; ".join(f"{p} mm: {pr:.2f} px vs {me:.2f} px" for p, pr, me in predicted)
         )
     lines.append("Static workpiece (§5.2) — overlay centre offset vs paper's Table 2:")
     for row in static_rows(results):

@@ -127,6 +127,14 @@ class DemoRigs:
         """Where the trolley stands at power-on (the first observation point)."""
         return start_position_mm(self.host)
 
+    def home_switch_mm(self) -> float:
+        """Where the drawing puts the home switch: the description's home before any survey.
+
+        A survey (commissioning) replaces the rig file's home with the controller's zero, the
+        first index pulse past the switch, up to a sprocket turn away from it.
+        """
+        return self.nominal.track.home.value
+
     def travel_mm(self) -> tuple[float, float]:
         """The travel between the limit switches, as the host's description has it."""
         return travel_limits_mm(self.host.track)

@@ -11,7 +11,7 @@ import contextlib
 import dataclasses
 import sys
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,8 @@ import numpy as np
 
 from hil_sim.camera import FrameClock
 from hil_sim.true_rig import parameter_errors
-from host.demo.daemon_phase import RunningDaemon, running_daemon
+from host.demo.commissioning_phase import make_commissioner, place_board
+from host.demo.daemon_phase import running_daemon
 from host.demo.experiments import (
     Bench,
     MovingRobot,
@@ -37,14 +38,17 @@ from host.demo.propagation_report import propagation_results
 from host.demo.report_pages import write_report
 from host.demo.rigs import DemoRigs, model_of
 from host.demo.world import SimCameraSource, SimWorld
+from host.experiments.budget import inputs_from_rig, overlay_sigma
 from host.frames.loop import FrameLoop
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
-from host.rig import RigError, build_scene, load_rig, save_rig
-from host.rig.schema import SURVEY_SIGMA_MM
+from host.rig import RigError, RigSpec, build_scene, load_rig, save_rig
+from host.rig.schema import NOMINAL, SURVEY_SIGMA_MM
 
 BAR_WIDTH = 30
+RENDER_EVERY = 8  # experiment frames rendered as images (the report's snapshots); all registered
+COMMISSIONING_FPS = 5.0  # the daemon's camera while commissioning: views are captured at rest
 
 
 @dataclass
@@ -102,10 +106,6 @@ class LoopLag:
             self.max_ms = max(self.max_ms, (loop.time() - t - self.period_s) * 1e3)
 
 
-Commissioner = Callable[[RunningDaemon, DemoRigs, SimWorld], Awaitable[dict[str, Any]]]
-"""Commissioning through the running daemon: writes the host's rig file, returns its report."""
-
-
 async def run_demo(
     link: str,
     quick: bool,
@@ -113,7 +113,7 @@ async def run_demo(
     seed: int = 1,
     rig_path: Path | None = None,
     tolerances: bool = False,
-    commission: Commissioner | None = None,
+    commission: bool = False,
     plan: Plan | None = None,
 ) -> dict[str, Any]:
     """Run everything; return the results (also written to out_dir).
@@ -121,8 +121,8 @@ async def run_demo(
     The host starts from the rig description (`rig_path`, default the paper's rig in a surveyed
     hall); the simulator runs the true rig: the description itself, or with `tolerances` the
     description off by seeded installation tolerances. With `commission`, the daemon runs on the
-    simulated rig first and the commissioning writes OUT/rig.toml through its control socket;
-    the experiments then use that file's (calibrated) rig only.
+    simulated rig first and the commissioning (host.demo.commissioning_phase) writes OUT/rig.toml
+    through its control socket; the experiments then use that file's (calibrated) rig only.
     """
     rigs = DemoRigs.make(rig_path, seed, tolerances)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -134,18 +134,21 @@ async def run_demo(
     results["mode"] = {"tolerances": tolerances, "commissioned": False}
     await world.start()
     try:
-        if commission is not None:
-            async with running_daemon(world, host_rig_file, out_dir / "daemon") as daemon:
-                results["commissioning"] = await commission(daemon, rigs, world)
+        if commission:
+            results["commissioning"] = await _commission(rigs, world, host_rig_file, seed)
             rigs = dataclasses.replace(rigs, host=load_rig(host_rig_file))
-            results["mode"]["commissioned"] = True
+            results["mode"]["commissioned"] = bool(results["commissioning"]["passed"])
+            results["mode"]["calibrated"] = calibrated_blocks(rigs.host)
         base = plan or (Plan.quick() if quick else Plan())
-        fitted = base.fitted(rigs.start_s_mm(), rigs.host.track.home.value, rigs.travel_mm())
+        fitted = base.fitted(rigs.start_s_mm(), rigs.home_switch_mm(), rigs.travel_mm())
         snapshots = await _experiments(rigs, world, fitted, link, seed, results)
     finally:
         await world.stop()
     camera = rigs.host_camera()
     results["calibration"] = parameter_errors(rigs.host, rigs.truth)
+    home = results.get("home", {})
+    if home.get("truth") is not None:  # the zero's truth is the plant's, not the drawing's
+        results["calibration"]["track.home_mm"].update(home)
     results["propagation"] = propagation_results(camera, samples=20_000 if quick else 100_000)
     results["report"] = str(write_report(out_dir, results, snapshots, sc))
     return results
@@ -184,15 +187,17 @@ async def _experiments(
         feed,
         workpiece,
         Truth(rigs.true_kinematics(), rigs.true_camera()),
-        home_switch_s_mm=rigs.host.track.home.value,
+        home_switch_s_mm=rigs.home_switch_mm(),
         latency_ns=round(rigs.host.camera.latency.value * 1e6),
         home_survey_sigma_mm=SURVEY_SIGMA_MM if rigs.tolerances else 0.0,
         survey_seed=seed,
+        predicted_px=_budget(rigs),
     )
     clock = _frame_clock(rigs, seed)
     source = SimCameraSource(
         world, bench.truth.rig, bench.truth.camera, model, true_workpiece,
         fps=rigs.truth.camera.fps, delivery_s=clock.delivery_s, clock=clock,
+        render_every=RENDER_EVERY,
     )  # fmt: skip
     loop = FrameLoop(source, bench.process(), [bench.collector])
     frames = asyncio.create_task(loop.run())
@@ -202,8 +207,13 @@ async def _experiments(
         progress("connect: handshake and homing", 0.0)
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
-        await start_host(bench, link)
-        feed.set_home(await survey_home(bench, world))
+        results["faults_cleared"] = await start_host(bench, link)
+        surveyed = await survey_home(bench, world)
+        # Commissioned: the zero surveyed then is in the rig file and the calibration (the
+        # track placement) was solved with it; the same switch and index give the same zero.
+        commissioned = results["mode"]["commissioned"]
+        feed.set_home(rigs.host.track.home.value if commissioned else surveyed)
+        results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}
         results["static"] = await static_experiment(bench, plan, start_s, progress)
         phase["static"] = False
         results["moving"] = await moving_experiment(bench, plan, start_s, robot, progress)
@@ -227,6 +237,58 @@ async def _experiments(
         await ctrl.close()
         progress.finish()
     return bench.snapshots
+
+
+async def _commission(rigs: DemoRigs, world: SimWorld, rig_file: Path, seed: int) -> dict[str, Any]:
+    """The installer's session through the running daemon (the board in the hall, surveys)."""
+    setup = place_board(rigs, seed)
+    clock = _frame_clock(rigs, seed)
+    true_pose = rigs.true_workpiece()
+    camera = SimCameraSource(
+        world, rigs.true_kinematics(), rigs.true_camera(), model_of(rigs.truth),
+        lambda t_ns: true_pose, fps=COMMISSIONING_FPS, delivery_s=clock.delivery_s,
+        clock=clock, board=setup.placed, seed=seed,
+    )  # fmt: skip
+    session = make_commissioner(setup, seed, _log)
+    t0 = time.monotonic()
+    try:
+        async with running_daemon(world, rig_file, rig_file.parent / "daemon", camera) as daemon:
+            report = dict(await session(daemon, rigs, world))
+    finally:
+        camera.close()
+    report["total_s"] = time.monotonic() - t0
+    return report
+
+
+def calibrated_blocks(spec: RigSpec) -> list[str]:
+    """The rig file's blocks that a measurement wrote (provenance other than nominal)."""
+    blocks = {
+        "camera.intrinsics": spec.camera.intrinsics.provenance,
+        "head.m_cr": spec.head.m_cr.provenance,
+        "track.placement": spec.track.placement.provenance,
+        "track.home": spec.track.home.provenance,
+        "camera.latency": spec.camera.latency.provenance,
+        "rangefinder.mount": spec.rangefinder.mount.provenance,
+        "workpiece.frame": spec.workpiece.frame.provenance,
+    }
+    return [name for name, prov in blocks.items() if prov.method != NOMINAL]
+
+
+def _budget(rigs: DemoRigs) -> Callable[[float, float, float], float]:
+    """The error budget of the host's rig file (cal11's): predicted σ of the model's centre."""
+    inputs = inputs_from_rig(rigs.host)
+    centre = model_of(rigs.host).vertices.mean(axis=0)[None, :]
+
+    def predicted(s_mm: float, pan: float, tilt: float) -> float:
+        return float(overlay_sigma(inputs, s_mm, pan, tilt, centre).sigma_px)
+
+    return predicted
+
+
+def _log(line: str) -> None:
+    """A progress line on stderr."""
+    sys.stderr.write(line + "\n")
+    sys.stderr.flush()
 
 
 def _frame_clock(rigs: DemoRigs, seed: int) -> FrameClock:
@@ -273,6 +335,12 @@ def add_parser(subparsers: Any) -> None:
         help="on: the simulated rig is off its description by seeded installation tolerances "
         "and the host starts from the description only (off: the host is handed the truth)",
     )
+    demo.add_argument(
+        "--commission",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="commission through the daemon first (auto: when --tolerances on)",
+    )
     demo.set_defaults(handler=main)
 
 
@@ -281,9 +349,10 @@ def main(args: Any) -> int:
     from host.demo.report_pages import summary_text
 
     tolerances = args.tolerances == "on"
+    commission = args.commission == "on" or (args.commission == "auto" and tolerances)
     try:
         results = asyncio.run(
-            run_demo(args.link, args.quick, args.out, args.seed, args.rig, tolerances)
+            run_demo(args.link, args.quick, args.out, args.seed, args.rig, tolerances, commission)
         )
     except RigError as exc:
         for problem in exc.problems:

@@ -96,14 +96,16 @@ def aimed_errors(
 
 
 def summary(values: list[float]) -> dict[str, float]:
-    """Mean, standard deviation, RMS and maximum (nan for an empty list)."""
+    """Mean, standard deviation, RMS, median and maximum (nan for an empty list)."""
     if not values:
-        return {"n": 0, "mean": math.nan, "std": math.nan, "rms": math.nan, "max": math.nan}
+        nan = math.nan
+        return {"n": 0, "mean": nan, "std": nan, "rms": nan, "median": nan, "max": nan}
     a = np.asarray(values, dtype=np.float64)
     return {
         "n": int(a.size),
         "mean": float(a.mean()),
         "std": float(a.std(ddof=1)) if a.size > 1 else 0.0,
         "rms": float(np.sqrt(np.mean(a**2))),
+        "median": float(np.median(a)),
         "max": float(a.max()),
     }

@@ -41,9 +41,63 @@ M_CR_PAPER = np.array(
 AIM_ITERATIONS = 4  # fixed-point passes in aim(); the camera offset is ~0.1 m against metres
 
 
-def orthonormalize_T(T: ArrayLike) -> FloatArray:
-    """Replace the rotation block of a 4x4 transform by its nearest rotation."""
+# Largest |σ - 1| of a rotation block accepted as rounding of printed figures: eq. 14 as printed
+# is off by 0.0029; a wrong matrix (a scale, a zero block, a shear) is off by far more.
+ORTHONORMAL_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class Orthonormalisation:
+    """What making a transform's rotation block orthonormal changed."""
+
+    singular_values: tuple[float, float, float]
+    max_change: float  # largest change of one entry of the 3x3 block
+
+    def describe(self) -> str:
+        """One line for logs and `orbitar config check`."""
+        sv = "/".join(f"{s:.4f}" for s in self.singular_values)
+        moved = f"{self.max_change:.4f}"
+        return f"rotation orthonormalised (singular values {sv}, entries moved by up to {moved})"
+
+
+def rotation_problem(T: ArrayLike, tolerance: float = ORTHONORMAL_TOLERANCE) -> str | None:
+    """Why the 3x3 block of a 4x4 transform is no rotation; None when it is one within tolerance."""
+    R = np.asarray(T, dtype=np.float64)[:3, :3]
+    if not np.all(np.isfinite(R)):
+        return "the rotation block must be finite"
+    sv = np.linalg.svd(R, compute_uv=False)
+    deviation = float(np.max(np.abs(sv - 1.0)))
+    if deviation > tolerance:
+        shown = "/".join(f"{s:.4g}" for s in sv)
+        return (
+            f"the rotation block is not a rotation: singular values {shown}, off by "
+            f"{deviation:.4g} (a rotation has 1/1/1; up to {tolerance:g} is accepted as rounding)"
+        )
+    det = float(np.linalg.det(R))
+    if det < 0:
+        return f"the rotation block is a reflection (determinant {det:.4f}), not a rotation"
+    return None
+
+
+def orthonormalisation(T: ArrayLike) -> Orthonormalisation:
+    """How far the rotation block of T is from the rotation orthonormalize_T puts in its place."""
     T_ = np.asarray(T, dtype=np.float64)
+    R = T_[:3, :3]
+    sv = np.linalg.svd(R, compute_uv=False)
+    change = float(np.max(np.abs(nearest_rotation(R) - R)))
+    return Orthonormalisation((float(sv[0]), float(sv[1]), float(sv[2])), change)
+
+
+def orthonormalize_T(T: ArrayLike, tolerance: float = ORTHONORMAL_TOLERANCE) -> FloatArray:
+    """Replace the rotation block of a 4x4 transform by its nearest rotation.
+
+    ValueError (saying why) when the block is no rotation within `tolerance`: a scale, a zero
+    block or a reflection is a wrong matrix, not a rounded one, and must not be silently fixed.
+    """
+    T_ = np.asarray(T, dtype=np.float64)
+    problem = rotation_problem(T_, tolerance)
+    if problem is not None:
+        raise ValueError(problem)
     return make_T(nearest_rotation(T_[..., :3, :3]), T_[..., :3, 3])
 
 

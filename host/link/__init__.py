@@ -10,11 +10,14 @@ from host.link.common import (
     LinkEvent,
     LinkState,
     LinkStats,
+    OutsideTrack,
     ProtocolMismatch,
 )
-from host.link.controller import Controller, Identity, Motion, MotionFailed, SampleSink, Snapshot
+from host.link.controller import Controller, Motion, MotionFailed, SampleSink
+from host.link.limits import TrackWindow
 from host.link.reconnect import BackoffConfig
 from host.link.session import Session, SessionConfig
+from host.link.snapshot import ControllerChange, Identity, Snapshot
 
 __all__ = [
     "BackoffConfig",
@@ -22,6 +25,7 @@ __all__ = [
     "ClockSync",
     "CommandTimeout",
     "Controller",
+    "ControllerChange",
     "ControllerRejected",
     "Identity",
     "LinkDown",
@@ -31,9 +35,11 @@ __all__ = [
     "LinkStats",
     "Motion",
     "MotionFailed",
+    "OutsideTrack",
     "ProtocolMismatch",
     "SampleSink",
     "Session",
     "SessionConfig",
     "Snapshot",
+    "TrackWindow",
 ]

@@ -3,9 +3,70 @@
 from __future__ import annotations
 
 import enum
+import logging
 from dataclasses import dataclass, field
+from typing import TypeVar
 
 from protocol import DropCounters, NakCode, State
+
+log = logging.getLogger("host.link")
+E = TypeVar("E", bound=enum.IntEnum)
+F = TypeVar("F", bound=enum.IntFlag)
+MAX_UNKNOWN_NOTED = 256  # distinct unknown values logged; beyond that, silence (a flood of noise)
+_unknown_noted: set[tuple[str, int]] = set()
+
+
+def note_unknown(kind: str, value: int) -> None:
+    """Log, once per kind and value, that the controller sent a value this host does not know."""
+    key = (kind, int(value))
+    if key in _unknown_noted or len(_unknown_noted) >= MAX_UNKNOWN_NOTED:
+        return
+    _unknown_noted.add(key)
+    log.warning(
+        "controller sent an unknown %s %d (0x%X): shown as a number", kind, int(value), int(value)
+    )
+
+
+def decode_enum(kind: type[E], value: int) -> E | int:
+    """A wire integer as its enum member, or (logged once) the plain number: never raises."""
+    try:
+        return kind(value)
+    except ValueError:
+        note_unknown(kind.__name__, value)
+        return int(value)
+
+
+def decode_flags(kind: type[F], value: int) -> F:
+    """A wire bit field as flags; bits this host does not know are kept and logged once."""
+    unknown = int(value) & ~_known_bits(kind)
+    if unknown:
+        note_unknown(f"{kind.__name__} bit", unknown)
+    return kind(value)
+
+
+def label(value: enum.Enum | int) -> str | int:
+    """An enum member's name, or the number itself when the value is not a known member."""
+    if isinstance(value, enum.Enum) and value.name is not None:
+        return value.name
+    return int(value)
+
+
+def flag_names(flags: enum.IntFlag) -> list[str]:
+    """Names of the set known bits, then the unknown bits as one hex number."""
+    kind = type(flags)
+    names = [m.name for m in kind if m.value and m in flags and m.name is not None]
+    unknown = int(flags) & ~_known_bits(kind)
+    if unknown:
+        names.append(f"0x{unknown:04X}")
+    return names
+
+
+def _known_bits(kind: type[enum.IntFlag]) -> int:
+    """Every bit some member of the flag type names."""
+    bits = 0
+    for member in kind:
+        bits |= int(member)
+    return bits
 
 
 class LinkError(Exception):
@@ -38,11 +99,20 @@ class ProtocolMismatch(LinkError):  # noqa: N818
         self.ctrl_hash = ctrl_hash
 
 
+class OutsideTrack(LinkError):  # noqa: N818
+    """A motion that would leave the surveyed open track (or soft limits not yet matching it)."""
+
+
 class ControllerRejected(LinkError):  # noqa: N818
     """The controller answered NAK: the command changed nothing."""
 
-    def __init__(self, command: str, code: NakCode, state: State):
-        super().__init__(f"{command} rejected: {code.name} in state {state.name}")
+    def __init__(self, command: str, code: NakCode | int, state: State | int):
+        # The session hands over plain numbers for codes and states it does not know.
+        if not isinstance(code, NakCode):
+            note_unknown("NAK code", code)
+        if not isinstance(state, State):
+            note_unknown("State", state)
+        super().__init__(f"{command} rejected: {label(code)} in state {label(state)}")
         self.command = command
         self.code = code
         self.state = state

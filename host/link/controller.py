@@ -1,11 +1,15 @@
-"""The controller API: async commands in mm, mm/s and radians, state snapshots, sample sinks.
+"""The controller: async commands in mm, mm/s and radians, state snapshots, pushed changes.
 
-Commands return when the controller acknowledged them; a NAK raises ControllerRejected; while
-the link is not up they raise LinkDown at once instead of waiting. Streams and parameters set
-through this API are remembered and re-applied after every reconnect (parameters only after a
-controller reset: otherwise they are still in force). Motions are never re-sent. With a
-`SheddingConfig`, streams run slower than asked while the link loses the controller's frames
-(`host.link.shedding`).
+This is the one controller surface: the daemon, the control operations and the outputs call it
+directly. `start()` connects in the background and keeps the link up (host.link.reconnect);
+`subscribe()` pushes a `ControllerChange` whenever the link state or the controller's STATUS
+changes, so nobody polls. Commands return when the controller acknowledged them; a NAK raises
+ControllerRejected; while the link is not up they raise LinkDown at once (naming the cause)
+instead of waiting. Streams and parameters set through this API are remembered and re-applied
+after every reconnect (parameters only after a controller reset: otherwise they are still in
+force). Motions are never re-sent. On an open track, motion off the surveyed ends is refused
+and the soft limits are kept inside it (host.link.limits). With a `SheddingConfig`, streams run
+slower than asked while the link loses the controller's frames (`host.link.shedding`).
 """
 
 from __future__ import annotations
@@ -15,17 +19,33 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
-from host.link.common import LinkError, LinkEvent, LinkState
+from host.link.common import (
+    LinkError,
+    LinkEvent,
+    LinkState,
+    OutsideTrack,
+    decode_enum,
+    decode_flags,
+    label,
+)
+from host.link.limits import (
+    TrackWindow,
+    check_jog,
+    check_soft_limit,
+    check_target,
+    sync_soft_limits,
+)
 from host.link.reconnect import BackoffConfig, Supervisor
-from host.link.session import SEQ_MOD, Session, SessionConfig, enum_or_int
+from host.link.session import SEQ_MOD, Session, SessionConfig
 from host.link.shedding import Shedder, SheddingConfig
+from host.link.snapshot import ControllerChange, Identity, Listener, Snapshot
 from host.transport.base import Transport
 from protocol import Packet
-from protocol.enums import Fault, State, Stream
+from protocol.enums import Fault, Inputs, State, Stream
 from protocol.messages import (
     ClearFault,
     EncoderSample,
@@ -52,6 +72,8 @@ UM_PER_MM = 1000.0
 URAD_PER_RAD = 1_000_000.0
 RING_SAMPLES = 4096  # ~4 s of encoder samples at 1 kHz
 STATUS_RATE_HZ = 20  # switched on at connect: motion completion is judged from STATUS
+DEFAULT_SPEED_MM_S = 100.0  # the paper's camera speed, when a move names none
+DEFAULT_ACCEL_MM_S2 = 500.0
 
 
 class MotionFailed(LinkError):  # noqa: N818
@@ -74,49 +96,7 @@ class SampleSink(Protocol):
         """A reference mark passed; s_mm is the encoder position captured at its edge."""
 
 
-@dataclass(frozen=True)
-class Identity:
-    """The controller's IDENTIFY constants, in host units where it helps."""
-
-    fw_version: int
-    boot_id: int
-    encoder_counts_per_rev: int
-    steps_per_rev: int
-    sprocket_teeth: int
-    chain_pitch_mm: float
-    mcu_clock_hz: int
-    rx_window: int
-
-    @property
-    def mm_per_count(self) -> float:
-        """Chain travel per encoder count: teeth × pitch per sprocket turn."""
-        return self.sprocket_teeth * self.chain_pitch_mm / self.encoder_counts_per_rev
-
-    @classmethod
-    def from_message(cls, m: Identify) -> Identity:
-        """Build from the wire message."""
-        return cls(
-            m.fw_version,
-            m.boot_id,
-            m.encoder_counts_per_rev,
-            m.steps_per_rev,
-            m.sprocket_teeth,
-            m.chain_pitch_um / UM_PER_MM,
-            m.mcu_clock_hz,
-            m.rx_window,
-        )
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    """What the host knows of the controller right now."""
-
-    link: LinkState
-    state: State | None
-    faults: Fault
-    inputs: int
-    position_mm: float | None
-    updated_ns: int | None  # host monotonic time of the last STATUS or encoder sample
+StatsProvider = Callable[[], Mapping[str, Any]]
 
 
 @dataclass
@@ -144,7 +124,7 @@ class _Status:
 
 @dataclass
 class Controller:
-    """Async API over one transport, with automatic reconnection."""
+    """Async API over one transport, with automatic reconnection and pushed state changes."""
 
     transport: Transport
     session_config: SessionConfig = field(default_factory=SessionConfig)
@@ -152,11 +132,17 @@ class Controller:
     on_event: Callable[[LinkEvent, str], None] | None = None
     seed: int | None = None
     shedding: SheddingConfig | None = None  # None: the streams always run at the rates asked for
+    track_window: TrackWindow | None = None  # an open track: limits motion and soft limits
+    streams_hz: Mapping[Stream, int] = field(default_factory=dict)  # on at every handshake
 
     def __post_init__(self) -> None:
         self.session = Session(self.transport, self.session_config, on_packet=self._on_packet)
         self.supervisor = Supervisor(
-            self.session, self._restore, backoff=self.backoff, seed=self.seed
+            self.session,
+            self._restore,
+            on_state=self._on_link_state,
+            backoff=self.backoff,
+            seed=self.seed,
         )
         self.supervisor.on_event = self._forward_event
         self.identity: Identity | None = None
@@ -164,25 +150,88 @@ class Controller:
         self.unsynced_samples = 0  # samples dropped before the clock sync had a probe
         self.sink_errors = 0  # samples a sink raised on (logged, then ignored)
         self._sinks: list[SampleSink] = []
-        self._streams: dict[Stream, int] = {Stream.STATUS: STATUS_RATE_HZ}
+        self._streams: dict[Stream, int] = {Stream.STATUS: STATUS_RATE_HZ, **self.streams_hz}
         self._params: dict[int, int] = {}
         self._status: _Status | None = None
         self._status_changed = asyncio.Event()
         self._last_position_mm: float | None = None
+        self._last_inputs = 0
         self._updated_ns: int | None = None
+        self._head_rad: tuple[float, float] | None = None
+        self._listeners: list[Listener] = []
+        self._stats: list[StatsProvider] = []
+        self._last_state_key: tuple[int, int, int, int, int] | None = None
+        self.listener_errors = 0  # subscribers that raised (logged, then ignored)
+        self.soft_limits_error: str | None = None  # why the soft limits do not match the track
         self.shedder = None if self.shedding is None else Shedder(self.shedding)
         self._shed_task: asyncio.Task[None] | None = None
 
     # ---- connection ----------------------------------------------------------------------
 
     async def connect(self) -> Identity:
-        """Open the transport, handshake, switch on the streams; reconnects automatically after."""
+        """Open the transport, handshake, switch on the streams; reconnects automatically after.
+
+        The first attempt's error propagates (tools and tests want it); `start()` never raises.
+        """
         await self.supervisor.connect()
         assert self.identity is not None
+        self._start_shedding()
+        return self.identity
+
+    def start(self) -> None:
+        """Connect in the background, retrying with capped backoff for ever; never raises.
+
+        The daemon's way in: a controller that is absent at start is a link state (pushed to
+        subscribers with its cause), not an error.
+        """
+        self.supervisor.start()
+        self._start_shedding()
+
+    @property
+    def connected(self) -> bool:
+        """True while the session is up."""
+        return self.link_state is LinkState.UP
+
+    @property
+    def link_error(self) -> str:
+        """Why the link is not up: the last failure (empty while up)."""
+        return "" if self.connected else self.supervisor.last_error
+
+    def subscribe(self, listener: Listener) -> Callable[[], None]:
+        """Get every link and STATUS change pushed from now on; returns the unsubscriber."""
+        self._listeners.append(listener)
+        return lambda: self._listeners.remove(listener) if listener in self._listeners else None
+
+    def add_stats(self, provider: StatsProvider) -> None:
+        """Merge a component's counters into link_stats() (the pose feed's, for one)."""
+        self._stats.append(provider)
+
+    def chain_pitch_mm(self) -> float | None:
+        """The chain pitch the controller reported in IDENTIFY, None before the first handshake."""
+        return None if self.identity is None else self.identity.chain_pitch_mm
+
+    def link_stats(self) -> dict[str, Any]:
+        """The session counters and the components' counters, as plain numbers."""
+        stats = self.session.stats
+        out: dict[str, Any] = {"state": self.link_state.value, "detail": self.link_error}
+        for key, value in vars(stats).items():
+            if isinstance(value, int | float):
+                out[key] = value
+        out["drops"] = stats.drops.total()
+        out["rtt_ms"] = None if stats.rtt.srtt_s is None else round(stats.rtt.srtt_s * 1e3, 3)
+        out["unsynced_samples"] = self.unsynced_samples
+        out["telemetry_scale"] = self.telemetry_scale
+        out["soft_limits_error"] = self.soft_limits_error
+        out["sink_errors"] = self.sink_errors
+        for provider in self._stats:
+            out.update(provider())
+        return out
+
+    def _start_shedding(self) -> None:
+        """The shedding loop, once, when configured."""
         if self.shedder is not None and self._shed_task is None:
             self._shed_task = asyncio.create_task(self._shed_loop(self.shedder), name="link-shed")
             self._shed_task.add_done_callback(_shed_ended)
-        return self.identity
 
     async def close(self) -> None:
         """Stop everything; commands raise LinkDown afterwards."""
@@ -212,16 +261,31 @@ class Controller:
         """Receive every converted sample from now on."""
         self._sinks.append(sink)
 
+    @property
+    def sinks(self) -> tuple[SampleSink, ...]:
+        """The sample sinks, in the order they were added."""
+        return tuple(self._sinks)
+
     def snapshot(self) -> Snapshot:
-        """Current knowledge, without waiting."""
+        """Current knowledge, without waiting (typed attributes; plain values as a mapping)."""
         st = self._status.msg if self._status is not None else None
+        homed = bool(self._last_inputs & Inputs.HOMED)
+        position = self._last_position_mm
+        track = None
+        if homed and position is not None:
+            track = "on" if self.track_window is None else self.track_window.where(position)
         return Snapshot(
             self.link_state,
-            enum_or_int(State, st.state) if st is not None else None,
-            enum_or_int(Fault, st.faults) if st is not None else Fault.NONE,
+            decode_enum(State, st.state) if st is not None else None,
+            decode_flags(Fault, st.faults) if st is not None else Fault.NONE,
             st.inputs if st is not None else 0,
-            self._last_position_mm,
+            position,
             self._updated_ns,
+            time.monotonic_ns(),
+            homed,
+            track,
+            self._head_rad,
+            self.link_error,
         )
 
     # ---- commands ------------------------------------------------------------------------
@@ -230,14 +294,21 @@ class Controller:
         """Seek home (0 = the controller's HOME_SPEED)."""
         return await self._motion(Home(speed_um_s=_um(speed_mm_s)), None)
 
-    async def move_to(self, mm: float, speed_mm_s: float, accel_mm_s2: float) -> Motion:
-        """Move to an absolute arc length along a trapezoidal profile."""
-        msg = MoveTo(_um(mm), _um(speed_mm_s), _um(accel_mm_s2))
+    async def move_to(
+        self, mm: float, speed_mm_s: float | None = None, accel_mm_s2: float | None = None
+    ) -> Motion:
+        """Move to an absolute arc length along a trapezoidal profile (on the track only)."""
+        speed = speed_mm_s or DEFAULT_SPEED_MM_S
+        msg = MoveTo(_um(mm), _um(speed), _um(accel_mm_s2 or DEFAULT_ACCEL_MM_S2))
+        if self.track_window is not None:
+            check_target(self.track_window, mm)
         return await self._motion(msg, mm)
 
-    async def jog(self, mm_s: float, accel_mm_s2: float) -> Motion:
-        """Run at a signed velocity until stop."""
-        return await self._motion(Jog(_um(mm_s), _um(accel_mm_s2)), None)
+    async def jog(self, mm_s: float, accel_mm_s2: float | None = None) -> Motion:
+        """Run at a signed velocity until stop (0 ramps down); never further off a track's end."""
+        msg = Jog(_um(mm_s), _um(accel_mm_s2 or DEFAULT_ACCEL_MM_S2))
+        check_jog(self.snapshot().track, mm_s)
+        return await self._motion(msg, None)
 
     async def stop(self) -> None:
         """Controlled stop."""
@@ -286,6 +357,8 @@ class Controller:
 
     async def set_param(self, param_id: int, value: int) -> int:
         """Write a parameter; returns the value in force; re-applied after a controller reset."""
+        if self.track_window is not None:
+            check_soft_limit(self.track_window, int(param_id), int(value))
         in_force = await self._param(ParamSet(int(param_id), int(value)))
         self._params[int(param_id)] = int(value)
         return in_force
@@ -306,7 +379,12 @@ class Controller:
         return await self.session.request(msg)
 
     async def _motion(self, msg: object, target_mm: float | None) -> Motion:
-        """A command whose completion can be awaited."""
+        """A command whose completion can be awaited; on an open track, soft limits first."""
+        self.supervisor.require_up()
+        if self.soft_limits_error is not None:
+            await self._sync_soft_limits()  # the controller refused them earlier: try again
+            if self.soft_limits_error is not None:
+                raise OutsideTrack(f"motion refused: {self.soft_limits_error}")
         reply = await self._command(msg)
         boot_id = self.identity.boot_id if self.identity is not None else None
         return Motion(self, reply.seq, target_mm, boot_id)
@@ -327,6 +405,12 @@ class Controller:
         if rebooted:
             for pid, value in self._params.items():
                 await self.session.request(ParamSet(pid, value))
+        await self._sync_soft_limits()
+
+    async def _sync_soft_limits(self) -> None:
+        """Keep the controller's soft limits inside an open track; note why when it refuses."""
+        if self.track_window is not None:
+            self.soft_limits_error = await sync_soft_limits(self.session, self.track_window)
 
     def _stream_rate(self, requested_hz: int) -> int:
         """The rate the controller is asked for: as requested, or scaled while shedding."""
@@ -377,6 +461,29 @@ class Controller:
         if self.on_event is not None:
             self.on_event(event, detail)
 
+    def _on_link_state(self, state: LinkState, detail: str) -> None:
+        """The supervisor moved the link: push it."""
+        self._push("link")
+
+    def _on_status(self, msg: Status) -> None:
+        """Push a STATUS that changed the state, faults, inputs, position or target."""
+        key = (msg.state, msg.faults, msg.inputs, msg.position_um, msg.target_um)
+        if key != self._last_state_key:
+            self._last_state_key = key
+            self._push("state")
+
+    def _push(self, topic: str) -> None:
+        """Hand a change to every subscriber; one that raises is logged and ignored."""
+        if not self._listeners:
+            return
+        change = ControllerChange(topic, self.snapshot())
+        for listener in list(self._listeners):
+            try:
+                listener(change)
+            except Exception:
+                self.listener_errors += 1
+                log.exception("a controller subscriber failed on %s", topic)
+
     async def _wait_for_rest(
         self, after_seq: int | None, target_mm: float | None, t: float, boot_id: int | None = None
     ) -> None:
@@ -397,10 +504,10 @@ class Controller:
         st = self._status
         if st is None or (after_seq is not None and (st.seq - after_seq) % SEQ_MOD >= SEQ_MOD // 2):
             return False
-        state = enum_or_int(State, st.msg.state)
+        state = decode_enum(State, st.msg.state)
         if state in (State.FAULT, State.ESTOP):
-            faults = enum_or_int(Fault, st.msg.faults)
-            raise MotionFailed(f"controller in {getattr(state, 'name', state)}, faults {faults!r}")
+            faults = decode_flags(Fault, st.msg.faults)
+            raise MotionFailed(f"controller in {label(state)}, faults 0x{int(faults):04X}")
         if state not in (State.READY, State.IDLE):
             return False
         # The controller's own profile end, not the encoder (whether the trolley followed is the
@@ -419,10 +526,14 @@ class Controller:
         """Telemetry from the session."""
         msg = packet.message
         if isinstance(msg, Status):
+            decode_enum(State, msg.state)  # an unknown value is logged once, here, on arrival
+            decode_flags(Fault, msg.faults)
             self._status = _Status(packet.seq, msg, time.monotonic_ns())
             self._last_position_mm = msg.position_um / UM_PER_MM
+            self._last_inputs = msg.inputs
             self._updated_ns = self._status.t_ns
             self._status_changed.set()
+            self._on_status(msg)
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
             self._on_sample(msg)
 
@@ -446,11 +557,14 @@ class Controller:
             s_mm, v_mm_s = msg.encoder_count * k, msg.velocity_counts_s * k
             self.encoder_ring.append((t_ns, s_mm, v_mm_s, msg.inputs))
             self._last_position_mm, self._updated_ns = s_mm, t_ns
+            self._last_inputs = msg.inputs
             for sink in self._sinks:
                 sink.on_encoder(t_ns, s_mm, v_mm_s, msg.inputs)
         elif isinstance(msg, HeadSample):
+            pan, tilt = msg.pan_urad / URAD_PER_RAD, msg.tilt_urad / URAD_PER_RAD
+            self._head_rad = (pan, tilt)
             for sink in self._sinks:
-                sink.on_head(t_ns, msg.pan_urad / URAD_PER_RAD, msg.tilt_urad / URAD_PER_RAD)
+                sink.on_head(t_ns, pan, tilt)
         elif isinstance(msg, RefMark):
             for sink in self._sinks:
                 sink.on_mark(t_ns, msg.encoder_count * self.identity.mm_per_count)

@@ -1,4 +1,8 @@
-"""Keep a session up: detect a dead link, back off, reopen, re-handshake, restore.
+"""Keep a session up: connect, detect a dead link, back off, reopen, re-handshake, restore.
+
+The only reconnect loop of the host: the daemon starts it (`start()`, which retries the first
+connection too) and follows its state changes through `on_state`; `last_error` keeps the real
+cause (the transport's error, the heartbeat silence) while the link is not up.
 
 The states follow aioesphomeapi's reconnect_logic (the code is ours): a drop fails every pending
 command with LinkDown at once (nothing is re-sent after a reconnect: nothing moves that was not
@@ -54,6 +58,7 @@ class Supervisor:
         self.session = session
         self.state = LinkState.DISCONNECTED
         self.attempts = 0
+        self.last_error = "not connected yet"  # why the link is not up (kept through BACKOFF)
         self._restore = restore
         self._on_state = on_state
         self._backoff = backoff or BackoffConfig()
@@ -71,6 +76,16 @@ class Supervisor:
         self._task = asyncio.create_task(self._watch(), name="link-supervisor")
         return ident
 
+    def start(self) -> None:
+        """Connect in the background, with backoff from the first failure on; never raises."""
+        if self._task is None:
+            self._task = asyncio.create_task(self._run(), name="link-supervisor")
+
+    async def _run(self) -> None:
+        """The first connection (retried like any reconnection), then the watch."""
+        await self._reconnect(first=True)
+        await self._watch()
+
     async def close(self) -> None:
         """Stop reconnecting, stop the session, close the transport."""
         if self._task is not None:
@@ -80,6 +95,7 @@ class Supervisor:
             self._task = None
         await self.session.stop("link closed by the user")
         await self.session.transport.close()
+        self.last_error = "closed"
         self._set_state(LinkState.DISCONNECTED, "closed")
 
     def drop(self, reason: str, reopen: bool = True) -> None:
@@ -88,6 +104,7 @@ class Supervisor:
             return
         self.session.halt(reason)
         self.session.stats.link_downs += 1
+        self.last_error = reason
         self._reopen = reopen
         self._set_state(LinkState.DOWN, reason)
         self._wake.set()
@@ -99,25 +116,32 @@ class Supervisor:
             self._wake.clear()
             await self._reconnect()
 
-    async def _reconnect(self) -> None:
-        """Attempts with growing delays until one succeeds."""
+    async def _reconnect(self, first: bool = False) -> None:
+        """Attempts with growing delays until one succeeds (the first one at once if `first`)."""
         reopen, self._reopen = self._reopen, True
         attempt = 0
+        last = ""
         while True:
-            if reopen or attempt:
+            if (reopen and not first) or attempt:
                 delay = self._backoff.delay_s(attempt, self._rng)
-                self._set_state(LinkState.BACKOFF, f"retry in {delay:.2f} s")
+                self._set_state(LinkState.BACKOFF, f"retry in {delay:.2f} s: {self.last_error}")
                 await asyncio.sleep(delay)
             try:
                 await self._attempt(reopen=reopen or attempt > 0)
                 return
-            except (LinkError, TransportError) as exc:
-                log.warning("reconnect attempt %d failed: %s", attempt + 1, exc)
+            except (LinkError, TransportError, OSError) as exc:
+                # OSError: a serial device that is not there (yet) raises it from open().
+                # The same failure again and again (a controller unplugged for hours) is
+                # logged when it starts and every 100th time, not at every attempt.
+                repeated = attempt > 0 and str(exc) == last
+                level = logging.DEBUG if repeated and attempt % 100 else logging.WARNING
+                log.log(level, "connection attempt %d failed: %s", attempt + 1, exc)
+                last = str(exc)
                 attempt += 1
             except Exception:
                 # Anything else is a bug, but the supervisor must outlive it or the link stays
                 # down for good: log it and keep retrying with backoff.
-                log.exception("reconnect attempt %d failed unexpectedly", attempt + 1)
+                log.exception("connection attempt %d failed unexpectedly", attempt + 1)
                 attempt += 1
 
     async def _attempt(self, reopen: bool) -> Identify:
@@ -134,10 +158,12 @@ class Supervisor:
             if rebooted:
                 self._notify(LinkEvent.CONTROLLER_RESET, f"new boot id 0x{ident.boot_id:08X}")
             await self._restore(ident, rebooted)
-        except BaseException:
+        except BaseException as exc:
             await self.session.stop("connection attempt failed")
-            self._set_state(LinkState.DOWN, "attempt failed")
+            self.last_error = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            self._set_state(LinkState.DOWN, f"attempt failed: {self.last_error}")
             raise
+        self.last_error = ""
         self._set_state(LinkState.UP, f"boot id 0x{ident.boot_id:08X}")
         return ident
 
@@ -173,4 +199,5 @@ class Supervisor:
     def require_up(self) -> None:
         """Raise LinkDown unless the link is up: commands are refused, never queued."""
         if self.state is not LinkState.UP:
-            raise LinkDown(f"link is {self.state.value}")
+            cause = f": {self.last_error}" if self.last_error else ""
+            raise LinkDown(f"link is {self.state.value}{cause}")

@@ -475,7 +475,8 @@ class Session:
             self.stats.duplicate_replies += 1
             return
         self.stats.clock_replies += 1
-        self.clock.add_probe(probe[0], msg.mcu_time_us, time.monotonic_ns(), msg.rx_time_us)
+        t1_ns = self.transport.rx_time_ns or time.monotonic_ns()  # its chunk's arrival (recorded)
+        self.clock.add_probe(probe[0], msg.mcu_time_us, t1_ns, msg.rx_time_us)
 
     def _emit(self, event: LinkEvent, detail: str) -> None:
         """Tell the owner; logging here so nothing goes unseen."""
@@ -519,6 +520,7 @@ class Session:
             t0 = time.monotonic_ns()
             seq = self._send_quietly(ClockSyncMsg(token=token))
             if seq is not None:
+                t0 = self.transport.tx_time_ns or t0  # taken just before the write (recorded)
                 self.stats.clock_probes += 1
                 self._probes[seq] = (t0, token)
                 while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:

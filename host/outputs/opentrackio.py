@@ -228,5 +228,6 @@ class OpenTrackIOSender:
 
 
 def _status(pose: PoseSample) -> str:
-    """Tracker status text: the controller state when the pose was computed."""
-    return pose.state or "unknown"
+    """Tracker status text: the controller state when the pose was computed, and if unhomed."""
+    state = pose.state or "unknown"
+    return state if pose.homed else f"{state}, not homed"

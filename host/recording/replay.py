@@ -14,6 +14,7 @@ from host.recording.writer import (
     KIND_EVENT,
     KIND_FRAME,
     KIND_HEAD,
+    KIND_HEADER,
     KIND_LINK,
     KIND_POSE,
     KIND_RANGE,
@@ -36,6 +37,8 @@ class ReplayStats:
     corrupt_files: int = 0
     bad_records: int = 0
     out_of_order: int = 0  # records whose time went backwards within a file
+    files_read: int = 0
+    skipped: list[tuple[str, str]] = field(default_factory=list)  # (file, why) not read
 
 
 def replay(
@@ -52,7 +55,7 @@ def replay(
     for record in reader:
         if record.kind not in wanted:
             continue
-        if record.t_ns < last.get(record.file, record.t_ns):
+        if record.kind != KIND_HEADER and record.t_ns < last.get(record.file, record.t_ns):
             stats.out_of_order += 1
         last[record.file] = record.t_ns
         stats.records += 1
@@ -63,4 +66,6 @@ def replay(
     stats.truncated_bytes = reader.truncated_bytes
     stats.corrupt_files = reader.corrupt_files
     stats.bad_records = reader.bad_records
+    stats.files_read = reader.files_read
+    stats.skipped = list(reader.skipped)
     return stats

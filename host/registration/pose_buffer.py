@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from host.geometry.head import Rig
+from host.geometry.track import Track
 from host.geometry.transforms import FloatArray, R_from_quat, make_T, quat_from_R, slerp
 
 Int64Array = npt.NDArray[np.int64]
@@ -36,6 +37,7 @@ class LookupStatus(Enum):
     OK = "ok"
     STALE = "stale"  # before the oldest sample, past the horizon, or across a gap
     EMPTY = "empty"
+    OFF_TRACK = "off_track"  # the trolley is outside the surveyed open track: no geometry there
 
 
 @dataclass(frozen=True)
@@ -259,4 +261,13 @@ class PoseSource:
                 return PoseLookup(h.status, t)
             pan, tilt = float(h.value[0]), float(h.value[1])
         s_mm = float(s.value[0])
+        if not on_track(self.rig.track, s_mm):
+            return PoseLookup(LookupStatus.OFF_TRACK, t, None, s_mm, pan, tilt)
         return PoseLookup(LookupStatus.OK, t, self.rig.T_w_c(s_mm, pan, tilt), s_mm, pan, tilt)
+
+
+def on_track(track: Track, s_mm: float) -> bool:
+    """Whether arc length s lies on the track: anywhere on a loop, within [0, L] on an open one."""
+    if not math.isfinite(s_mm):
+        return False
+    return track.closed or 0.0 <= s_mm <= track.length_mm

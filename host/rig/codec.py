@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from host.config_fields import ConfigError
+from host.geometry.head import rotation_problem
 from host.geometry.rangefinder import unit_normal
 from host.geometry.track import Track
 from host.rig.schema import (
@@ -40,7 +41,6 @@ from host.rig.schema import (
     WorkpieceSpec,
 )
 
-ORTHONORMAL_TOL = 1e-6  # a stored rotation block must be a rotation to this precision
 DEG_DIGITS = 10  # decimals of a written angle: far below any tolerance, stable on rereading
 
 
@@ -186,10 +186,8 @@ def _pose(r: _Reader, name: str, default: Pose6) -> Pose6:
         matrix = default.matrix
     elif not np.allclose(matrix[3], [0, 0, 0, 1]):
         p.fail("matrix", "the last row of a homogeneous transform must be [0, 0, 0, 1]")
-    elif np.abs(matrix[:3, :3] @ matrix[:3, :3].T - np.eye(3)).max() > ORTHONORMAL_TOL or (
-        np.linalg.det(matrix[:3, :3]) < 0
-    ):
-        p.fail("matrix", "the 3×3 block is not a rotation (orthonormal, determinant +1)")
+    elif (problem := rotation_problem(matrix)) is not None:  # the config's rule (printed figures)
+        p.fail("matrix", problem)
     cov = p.matrix("covariance", 6, None)
     if cov is not None and (
         not np.allclose(cov, cov.T) or np.linalg.eigvalsh(0.5 * (cov + cov.T)).min() < -1e-12
@@ -253,7 +251,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         segments,
         _pose(t, "placement", default.placement),
         t.flag("closed", None),
-        _scalar(t, "home", default.home, "mm", 0.0, 1e6),
+        _scalar(t, "home", default.home, "mm", -1e6, 1e6),  # a loop's zero may lie before s = 0
         marks,
         t.optional("travel_min_mm", -1e6, 1e6),
         t.optional("travel_max_mm", -1e6, 1e7),

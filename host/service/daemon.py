@@ -1,8 +1,10 @@
 """The daemon's lifecycle: start, keep the link up, serve, report to systemd, stop cleanly.
 
-`Daemon` takes the configuration and two factories (controller, frame loop), so the real
-`host.link.Controller` and frame loop plug in without this module knowing them. Everything runs
-on one event loop; the systemd watchdog is pinged from that loop, so a stalled loop is noticed.
+`Daemon` takes the configuration and two factories (controller, frame loop): the real ones are
+`host.service.wiring`'s, tests pass their own. The controller keeps its link up by itself and
+pushes every link and state change to the daemon, which forwards them to systemd, the control
+socket's subscribers and the recording; nothing here polls. Everything runs on one event loop;
+the systemd watchdog is pinged from that loop, so a stalled loop is noticed.
 """
 
 from __future__ import annotations
@@ -19,13 +21,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from host.commissioning.env import CommissioningEnv
-from host.config import Config, load_config
+from host.config import Config
 from host.config_fields import ConfigError
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.control.ops import OpContext, op_calibration, op_status
 from host.control.server import ControlServer, ControlServerError
+from host.link.common import LinkState
+from host.link.snapshot import ControllerChange, Snapshot
 from host.outputs.tracking import TrackingOutputs
+from host.recording.taps import header_source, recording_header
 from host.recording.writer import KIND_EVENT, KIND_POSE, RecordingWriter
+from host.service.lock import DaemonLock
 from host.service.logsetup import set_level
 from host.service.notify import Notifier
 
@@ -42,9 +48,6 @@ CalibrationProvider = Callable[[], dict[str, Any]]
 
 STOP_ACK_TIMEOUT_S = 0.8  # SIGTERM budget: stop ack + link close + socket close < 2 s
 LINK_CLOSE_TIMEOUT_S = 0.4
-STATE_POLL_S = 0.1
-LINK_POLL_S = 0.25
-FIRST_RETRY_S = 0.5
 RESTART_SECTIONS = ("link", "camera", "registration", "control", "bus")
 
 
@@ -71,20 +74,39 @@ class Daemon:
         calibration: CalibrationProvider | None = None,
         commissioning: CommissioningEnv | None = None,
     ) -> None:
-        self.config = config
-        self.calibration = calibration or self._config_calibration
+        # First of all: a second daemon on this socket must touch nothing (host.service.lock).
+        self._lock = DaemonLock(config.control.socket_path)
+        self._lock.acquire()
+        try:
+            self._build(config, controller_factory, frame_loop_factory, commissioning)
+        except BaseException:
+            self._lock.release()
+            raise
         self.config_path = config_path
         self.notifier = notifier or Notifier()
+        self.calibration = calibration or self._config_calibration
+
+    def _build(
+        self,
+        config: Config,
+        controller_factory: ControllerFactory,
+        frame_loop_factory: FrameLoopFactory | None,
+        commissioning: CommissioningEnv | None = None,
+    ) -> None:
+        """Everything the daemon runs, built once the lock is held."""
+        self.config = config
         self.phase = Phase.STARTING
         self.latest_pose: PoseSample | None = None
-        self.link_error = "not connected yet"
         self.ready_sent = False
+        self.link_was_up = False
+        self._logged_cause = ""  # the link-down cause last logged
         self.output_errors = 0
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
         self.outputs = TrackingOutputs()
         self.bus: BusPublisher | None = None
         self.controller = controller_factory(config, self.record)
+        self.controller.subscribe(self._on_controller)
         self.frame_loop = (
             frame_loop_factory(config, self.controller, self.on_pose, self.record)
             if frame_loop_factory
@@ -115,12 +137,14 @@ class Daemon:
             log.error("cannot start", extra={"kv": {"error": exc}})
             await self._shutdown()
             self._remove_signals(loop)
+            self._lock.release()
             return 1
         try:
             await self._stop.wait()
         finally:
             await self._shutdown()
             self._remove_signals(loop)
+            self._lock.release()
         return self.exit_code
 
     def request_stop(self) -> None:
@@ -133,8 +157,8 @@ class Daemon:
         self.latest_pose = sample
         data = sample.to_dict()
         try:
-            self.server.publish("pose", data)
-            self.outputs.send(sample)
+            self.server.publish("pose", data)  # flagged `homed: false` until homing is done
+            self.outputs.send(sample)  # FreeD is held until homed, OpenTrackIO says it
             if self.bus is not None:
                 self.bus.publish_pose(sample)
             self.record(KIND_POSE, sample.t_ns, data)
@@ -156,15 +180,18 @@ class Daemon:
     def status(self) -> dict[str, Any]:
         """The service part of the status op."""
         fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
+        pose = self.latest_pose
+        pose_age_s = None if pose is None else round((time.monotonic_ns() - pose.t_ns) / 1e9, 3)
         return {
             "phase": self.phase.value,
             "uptime_s": round(time.monotonic() - self._started_s, 3),
-            "fps": fps,
+            "fps": round(fps, 2),
+            "pose_age_s": pose_age_s,
             "clients": self.server.client_count,
-            "link_error": "" if self.controller.connected else self.link_error,
+            "link_error": self.controller.link_error,
             **self.outputs.stats(),
             "bus": self.bus.stats() if self.bus is not None else None,
-            "recording": str(self.recorder.current) if self.recorder else None,
+            "recording": self.recorder.status() if self.recorder else {"state": "off"},
             "output_errors": self.output_errors,
             # the error budget at the current pose (docs/COMMISSIONING.md), None when unknown
             "overlay_sigma_px": self.commissioning.overlay_sigma_px(self.controller.snapshot()),
@@ -175,15 +202,23 @@ class Daemon:
         if self.config_path is None:
             log.warning("reload ignored: the daemon was started without a config file")
             return []
-        try:
-            new = load_config(self.config_path)
-        except ConfigError as exc:
-            log.error("reload rejected, keeping the running settings", extra={"kv": {"why": exc}})
+        from host.service.preflight import check_file  # it imports the wiring, which imports us
+
+        try:  # in a thread: name resolution and a model file must not stall the watchdog
+            new, report = await asyncio.to_thread(check_file, self.config_path, as_service=True)
+        except Exception as exc:  # a reload must never stop the daemon
+            log.exception("reload failed, keeping the running settings", extra={"kv": {"why": exc}})
             return []
+        if new is None or not report.ok:
+            why = "; ".join(report.errors)
+            log.error("reload rejected, keeping the running settings", extra={"kv": {"why": why}})
+            return []
+        for note in report.notes:
+            log.warning("configuration note", extra={"kv": {"note": note}})
         try:
             applied = await self._apply(new)
             applied += self._apply_rig(new)
-        except OSError as exc:
+        except Exception as exc:  # e.g. OSError opening an output; never fatal to the daemon
             log.error("reload could not open an output", extra={"kv": {"error": exc}})
             applied = []
         skipped = [s for s in RESTART_SECTIONS if getattr(new, s) != getattr(self.config, s)]
@@ -232,10 +267,9 @@ class Daemon:
         await self.outputs.start(self.config)
         self._restart_recorder(self.config)
         self._start_bus()
-        for job in (self._link_keeper(), self._watchdog(), self._status_reporter()):
+        self.controller.start()  # connects in the background; changes come to _on_controller
+        for job in (self._watchdog(), self._status_reporter(), self._ready_grace()):
             self._spawn(job)
-        self._spawn(self._state_publisher())
-        self._spawn(self._ready_grace())
         if self.frame_loop is not None:
             self._spawn(self.frame_loop.run())
         self.phase = Phase.RUNNING
@@ -273,40 +307,45 @@ class Daemon:
         except Exception as exc:
             log.warning("link close failed", extra={"kv": {"error": exc}})
 
-    async def _link_keeper(self) -> None:
-        """Connect, and reconnect with capped doubling backoff whenever the link drops."""
-        backoff = FIRST_RETRY_S
-        while True:
-            if not self.controller.connected:
-                try:
-                    await self.controller.connect()
-                except Exception as exc:  # every connect failure is retried, none is fatal
-                    self.link_error = f"{type(exc).__name__}: {exc}"
-                    log.warning("controller not reachable", extra={"kv": {"error": exc}})
-                    await asyncio.sleep(backoff)
-                    backoff = min(backoff * 2, self.config.link.reconnect_max_s)
-                    continue
-                backoff = FIRST_RETRY_S
-                self._link_up()
-            await asyncio.sleep(LINK_POLL_S)
+    def _on_controller(self, change: ControllerChange) -> None:
+        """A pushed change: a `state` event, or the link's new state."""
+        if change.topic == "state":
+            self.server.publish("state", dict(change.snapshot))
+            if self.bus is not None:
+                self.bus.publish_state(change.snapshot)
+        elif change.topic == "link":
+            self._on_link(change.snapshot)
 
-    def _link_up(self) -> None:
-        """The link came up: tell systemd (once) and the subscribers."""
-        log.info("controller link up")
-        self.record(KIND_EVENT, time.monotonic_ns(), {"link": "up"})
-        if not self.ready_sent:
-            self.ready_sent = True
-            self.notifier.ready("running: controller link up")
-        self.server.publish("link", dict(self.controller.link_stats()))
-        if self.bus is not None:
-            self.bus.publish_event("link_up")
+    def _on_link(self, snap: Snapshot) -> None:
+        """The link moved: log it, record it, tell systemd (READY once) and the subscribers."""
+        up = snap.link is LinkState.UP
+        detail = snap.link_detail
+        if up:
+            self.link_was_up = True
+            log.info("controller link up")
+            if not self.ready_sent:
+                self.ready_sent = True
+                self.notifier.ready("running: controller link up")
+        elif snap.link is LinkState.DOWN and detail != self._logged_cause:
+            what = "controller link down" if self.link_was_up else "controller not reachable"
+            log.warning(what, extra={"kv": {"error": detail}})  # once per cause, not per retry
+        self._logged_cause = "" if up else detail
+        self.record(KIND_EVENT, time.monotonic_ns(), {"link": snap.link.value, "detail": detail})
+        self.server.publish("link", self._link_event())
+        if self.bus is not None and snap.link in (LinkState.UP, LinkState.DOWN):
+            self.bus.publish_event(f"link_{snap.link.value}", detail)
+
+    def _link_event(self) -> dict[str, Any]:
+        """The `link` event: up or not, why not, and the counters."""
+        stats = dict(self.controller.link_stats())
+        return {"up": self.controller.connected, "error": self.controller.link_error, **stats}
 
     async def _ready_grace(self) -> None:
         """READY=1 after the grace period even without a link, saying why."""
         await asyncio.sleep(self.config.systemd.ready_grace_s)
         if not self.ready_sent:
             self.ready_sent = True
-            self.notifier.ready(f"running without controller: {self.link_error}")
+            self.notifier.ready(f"running without controller: {self.controller.link_error}")
 
     async def _watchdog(self) -> None:
         """WATCHDOG=1 at half the period systemd asked for, from this very loop."""
@@ -323,21 +362,9 @@ class Daemon:
             await asyncio.sleep(self.config.systemd.status_interval_s)
             up = self.controller.connected
             fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
-            link = "link up" if up else f"link down ({self.link_error})"
+            link = "link up" if up else f"link down ({self.controller.link_error})"
             self.notifier.status(f"{link}; {fps:.1f} fps; {self.server.client_count} clients")
-            self.server.publish("link", {"up": up, **self.controller.link_stats()})
-
-    async def _state_publisher(self) -> None:
-        """A `state` event whenever the controller snapshot changes."""
-        last: dict[str, Any] | None = None
-        while True:
-            snapshot = dict(self.controller.snapshot())
-            if snapshot != last:
-                self.server.publish("state", snapshot)
-                if self.bus is not None:
-                    self.bus.publish_state(snapshot)
-                last = snapshot
-            await asyncio.sleep(STATE_POLL_S)
+            self.server.publish("link", self._link_event())
 
     def _start_bus(self) -> None:
         """Put this rig on the bus if `[bus]` says so (Zenoh is imported only then)."""
@@ -358,32 +385,31 @@ class Daemon:
         """What the bus publishes every stats interval: link, clock sync and frame rate."""
         fps = self.frame_loop.fps if self.frame_loop is not None else 0.0
         up = self.controller.connected
-        return {"link_up": up, "link_error": "" if up else self.link_error, "fps": fps,
+        return {"link_up": up, "link_error": self.controller.link_error, "fps": fps,
                 "link": dict(self.controller.link_stats())}  # fmt: skip
 
     def _restart_recorder(self, config: Config) -> None:
-        """(Re)open the recording as configured; a failure is logged, not fatal."""
+        """(Re)open the recording as configured; its thread retries a failing disk (status)."""
         if self.recorder is not None:
-            self.recorder.close()
+            self.recorder.close(timeout_s=0.0)  # its thread finishes the old file on its own
             self.recorder = None
         rec = config.recording
         if not rec.enabled:
             return
-        writer = RecordingWriter(rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames)
-        try:
-            writer.open()
-        except OSError as exc:
-            log.error("recording disabled", extra={"kv": {"dir": rec.dir, "error": exc}})
-            return
+        fixed = recording_header(config, self.config_path)
+        header = header_source(fixed, self.controller, self.calibration)
+        writer = RecordingWriter(
+            rec.dir, rec.rotate_mb, rec.keep_files, rec.include_frames, header=header
+        )
+        writer.open()
         self.recorder = writer
 
     def _pose_at(self, t_ns: int) -> tuple[float, float, float] | None:
         """(s, pan, tilt) the frame loop's pose source gives a frame stamped t_ns, if any."""
-        registrar = getattr(self.frame_loop, "registrar", None)
-        poses = getattr(registrar, "poses", None)
-        if poses is None:
+        poses = getattr(self.frame_loop, "poses", None)  # CameraPoseLoop: (PoseSource, feed)
+        if not isinstance(poses, tuple) or not poses:
             return None
-        pose = poses.pose_at(t_ns)
+        pose = poses[0].pose_at(t_ns)
         return (pose.s_mm, pose.pan_rad, pose.tilt_rad) if pose.ok else None
 
     def _op_context(self) -> OpContext:

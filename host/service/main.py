@@ -5,23 +5,20 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import os
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from host.config import Config, load_config
 from host.config_fields import ConfigError
-from host.control.api import ControllerLike, PoseSink
-from host.control.fake import FakeController, FakeFrameLoop
-from host.service import wiring
-from host.service.daemon import ControllerFactory, Daemon, FrameLoopFactory, RecordTap
+from host.service.lock import EXIT_ALREADY_RUNNING, AlreadyRunning
 from host.service.logsetup import setup_logging
+from host.service.preflight import preflight
+
+if TYPE_CHECKING:
+    from host.service.daemon import ControllerFactory, FrameLoopFactory
 
 log = logging.getLogger(__name__)
-
-# Tests only: run the daemon against the in-memory fake instead of the configured link.
-FAKE_ENV = "ORBITAR_FAKE_CONTROLLER"  # "1" works, "fail" never connects
 
 
 def add_parser(subparsers: Any) -> None:
@@ -37,21 +34,29 @@ def run(
     controller_factory: ControllerFactory | None = None,
     frame_loop_factory: FrameLoopFactory | None = None,
 ) -> int:
-    """Run the daemon to completion; the process exit code."""
+    """Run the daemon to completion; the process exit code (tests pass their own factories)."""
     try:
         config = load_config(args.config) if args.config else Config()
-        wiring.rig_spec(config)  # a bad rig file stops the start, naming its key
-    except (ConfigError, wiring.WiringError) as exc:
+    except ConfigError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
+        return 2
+    report = preflight(config, as_service=True)  # the same checks as `orbitar config check`
+    if not report.ok:
+        print(
+            "orbitar daemon: " + "\n  ".join(["invalid configuration:", *report.errors]),
+            file=sys.stderr,
+        )
         return 2
     try:
         setup_logging(args.log_level or config.log.level)
     except ValueError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
+    for note in report.notes:
+        log.warning("configuration note", extra={"kv": {"note": note}})
     if controller_factory is None:
-        controller_factory, frame_loop_factory = _fake_factories()
-    if controller_factory is None:
+        from host.service import wiring  # the real link, camera and pose loop: only to run
+
         controller_factory = wiring.controller_factory
         frame_loop_factory = wiring.frame_loop_factory
     return asyncio.run(_serve(config, controller_factory, frame_loop_factory, args.config))
@@ -64,33 +69,21 @@ async def _serve(
     config_path: str | None,
 ) -> int:
     """Build the daemon on the running loop (the link objects bind to it) and run it."""
+    from host.service.daemon import Daemon
+    from host.service.wiring import WiringError
+
     try:
         daemon = Daemon(config, controller_factory, frame_loop_factory, config_path=config_path)
-    except wiring.WiringError as exc:
+    except AlreadyRunning as exc:
+        print(f"orbitar daemon: {exc}", file=sys.stderr)
+        return EXIT_ALREADY_RUNNING
+    except WiringError as exc:
         print(f"orbitar daemon: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the lock file's directory cannot be made or opened
+        print(f"orbitar daemon: cannot start: {exc}", file=sys.stderr)
+        return 1
     return await daemon.run()
-
-
-def _fake_factories() -> tuple[ControllerFactory | None, FrameLoopFactory | None]:
-    """The in-memory fake, only when the test environment variable asks for it."""
-    mode = os.environ.get(FAKE_ENV, "")
-    if not mode:
-        return None, None
-
-    def controller(config: Config, tap: RecordTap) -> ControllerLike:
-        return FakeController(fail_connect=mode == "fail")
-
-    def frames(
-        config: Config, ctl: ControllerLike, sink: PoseSink, tap: RecordTap
-    ) -> FakeFrameLoop:
-        assert isinstance(ctl, FakeController)
-        rig = wiring.rig_spec(config)
-        height_mm = float(rig.track.placement.matrix[2, 3])
-        return FakeFrameLoop(ctl, sink, rig.camera.fps, height_mm)
-
-    log.warning("running with the FAKE controller", extra={"kv": {"env": FAKE_ENV}})
-    return controller, frames
 
 
 def main(argv: Sequence[str] | None = None) -> int:

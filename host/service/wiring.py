@@ -1,7 +1,7 @@
 """The daemon's real parts: the controller link and the pose loop, built from the configuration.
 
-`controller_factory` gives the daemon a `LinkController`: `host.link.Controller` on the transport
-named by `[link]`, seen through `host.control.api.ControllerLike`. `frame_loop_factory` builds
+`controller_factory` gives the daemon `host.link.Controller` on the transport named by `[link]`,
+with the stream rates, the track window and the recording tap. `frame_loop_factory` builds
 what turns the controller's samples into camera poses: a `PoseFeed` (encoder and head samples
 into time-indexed buffers), a `PoseSource` on the configured rig, and either a camera frame loop
 with per-frame registration or, without a camera, a fixed-rate pose publisher, so the pose
@@ -17,12 +17,13 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from host.commissioning.frames import FrameTap, RangeTap
+from host.commissioning.frames import FrameTap as LatestFrameTap
+from host.commissioning.frames import attach_range_tap
 from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
-from host.frames.sources import FrameSource, VideoCaptureSource
+from host.frames.sources import Frame, FrameSource, VideoCaptureSource
 from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.fusion.range_fix import RangeFixConfig, RangeFixer
 from host.geometry.camera import CameraModel
@@ -31,12 +32,14 @@ from host.geometry.model import Wireframe, load_model, manipulator_wireframe
 from host.geometry.track import Track
 from host.geometry.transforms import FloatArray
 from host.link import Controller
-from host.link.common import LinkDown, LinkEvent, LinkState
+from host.link.common import LinkEvent
+from host.link.limits import TrackWindow
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
-from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_FRAME, KIND_HEAD, KIND_RANGE
-from host.registration.pose_buffer import AngleBuffer, PoseSource, SampleBuffer
+from host.recording.taps import FrameTap, attach_link_tap
+from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_HEAD, KIND_RANGE
+from host.registration.pose_buffer import AngleBuffer, LookupStatus, PoseSource, SampleBuffer
 from host.registration.track_feed import PoseFeed
 from host.rig import RigError, RigSpec, build_kinematics, build_scene, current_rig
 from host.rig import build_camera as build_camera_model
@@ -44,13 +47,10 @@ from host.rig import build_track as rig_build_track
 from host.rig import workpiece_pose as rig_workpiece_pose
 from host.service.daemon import RecordTap
 from host.transport import Transport, TransportConfigError, create_transport
-from protocol import ParamId
-from protocol.enums import Fault, Stream
+from protocol.enums import Stream
 
 log = logging.getLogger(__name__)
 
-DEFAULT_SPEED_MM_S = 100.0  # the paper's camera speed, when a move names none
-DEFAULT_ACCEL_MM_S2 = 500.0
 # Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN),
 # leaving room for commands, their replies and retransmissions.
 #
@@ -97,7 +97,6 @@ def stream_rates(kind: str, ranging: bool) -> dict[Stream, int]:
     return rates
 
 
-RECONNECT_WAIT_S = 1.0  # how long connect() waits for the supervisor's own reconnection
 ENCODER_HORIZON_NS = 50_000_000  # carry the trolley forward at most 50 ms past its last sample
 HEAD_HORIZON_NS = 150_000_000  # head samples are slower and the head moves slowly
 MAX_GAP_NS = 300_000_000
@@ -139,134 +138,18 @@ def build_transport(config: Config) -> Transport:
         raise WiringError(f"[link]: {exc}") from exc
 
 
-class LinkController:
-    """`ControllerLike` over `host.link.Controller`: defaults for what the socket leaves out."""
-
-    def __init__(self, controller: Controller, stream_rates_hz: Mapping[Stream, int]) -> None:
-        self.ctrl = controller
-        self.stream_rates_hz = dict(stream_rates_hz)
-        self.head_rad: tuple[float, float] | None = None
-        self.track_feed: PoseFeed | None = None  # set by frame_loop_factory; its stats join ours
-        self.range_tap = RangeTap()
-        self._supervised = False  # after the first success the supervisor reconnects by itself
-
-    @property
-    def connected(self) -> bool:
-        """True while the session is up."""
-        return self.ctrl.link_state is LinkState.UP
-
-    def chain_pitch_mm(self) -> float | None:
-        """The chain pitch the controller reported in IDENTIFY, None before the first handshake."""
-        ident = self.ctrl.identity
-        return None if ident is None else ident.chain_pitch_mm
-
-    async def connect(self) -> None:
-        """First time: open and handshake; later: wait briefly for the supervisor's reconnect."""
-        if self._supervised:
-            await self._wait_up(RECONNECT_WAIT_S)
-            return
-        await self.ctrl.connect()
-        self._supervised = True
-        await self.ctrl.set_streams(self.stream_rates_hz)  # remembered across reconnects
-
-    async def close(self) -> None:
-        """Stop reconnecting and close the transport."""
-        self._supervised = False
-        await self.ctrl.close()
-
-    async def home(self) -> None:
-        """Start homing at the controller's HOME_SPEED."""
-        await self.ctrl.home()
-
-    async def move_to(self, position_mm: float, speed_mm_s: float | None = None) -> None:
-        """Start an absolute move (returns once acknowledged, not at the target)."""
-        speed = speed_mm_s or DEFAULT_SPEED_MM_S
-        await self.ctrl.move_to(position_mm, speed, DEFAULT_ACCEL_MM_S2)
-
-    async def jog(self, velocity_mm_s: float) -> None:
-        """Constant velocity; 0 ramps down."""
-        await self.ctrl.jog(velocity_mm_s, DEFAULT_ACCEL_MM_S2)
-
-    async def stop(self) -> None:
-        """Controlled stop."""
-        await self.ctrl.stop()
-
-    async def estop(self) -> None:
-        """Emergency stop."""
-        await self.ctrl.estop()
-
-    async def clear_fault(self) -> None:
-        """Release a latched fault or e-stop."""
-        await self.ctrl.clear_fault()
-
-    async def set_head(self, pan_rad: float, tilt_rad: float) -> None:
-        """Point the head."""
-        await self.ctrl.set_head(pan_rad, tilt_rad)
-
-    async def get_param(self, param: ParamId) -> int:
-        """Read a parameter."""
-        return await self.ctrl.get_param(param)
-
-    async def set_param(self, param: ParamId, value: int) -> None:
-        """Write a parameter (RAM)."""
-        await self.ctrl.set_param(param, value)
-
-    async def persist_params(self) -> None:
-        """Store the parameters in flash."""
-        await self.ctrl.persist_params()
-
-    def snapshot(self) -> Mapping[str, Any]:
-        """Plain values for the status op and `state` events (no timestamps: they always change)."""
-        snap = self.ctrl.snapshot()
-        position = snap.position_mm
-        return {
-            "link": snap.link.value,
-            "state": snap.state.name if snap.state is not None else "UNKNOWN",
-            "faults": int(snap.faults),
-            "fault_names": _flag_names(snap.faults),
-            "inputs": snap.inputs,
-            "position_mm": None if position is None else round(position, 3),
-            "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
-        }
-
-    def link_stats(self) -> Mapping[str, Any]:
-        """The session counters as plain numbers."""
-        stats = self.ctrl.session.stats
-        out: dict[str, Any] = {"state": self.ctrl.link_state.value}
-        for key, value in vars(stats).items():
-            if isinstance(value, int | float):
-                out[key] = value
-        out["drops"] = stats.drops.total()
-        out["rtt_ms"] = None if stats.rtt.srtt_s is None else round(stats.rtt.srtt_s * 1e3, 3)
-        out["unsynced_samples"] = self.ctrl.unsynced_samples
-        out["telemetry_scale"] = self.ctrl.telemetry_scale
-        if self.track_feed is not None:
-            out.update(self.track_feed.stats())
-        return out
-
-    async def _wait_up(self, timeout_s: float) -> None:
-        """Poll the supervisor's state; LinkDown if it is still not up."""
-        deadline = time.monotonic() + timeout_s
-        while not self.connected:
-            if time.monotonic() >= deadline:
-                raise LinkDown(f"link is {self.ctrl.link_state.value}, reconnecting")
-            await asyncio.sleep(0.05)
-
-
 class RecordingSink:
     """A `SampleSink` that hands encoder and head samples to the daemon's recording tap."""
 
-    def __init__(self, tap: RecordTap, owner: LinkController) -> None:
+    def __init__(self, tap: RecordTap) -> None:
         self.tap = tap
-        self.owner = owner
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
         """One encoder sample."""
         self.tap(KIND_ENCODER, t_host_ns, {"s_mm": s_mm, "v_mm_s": velocity_mm_s, "inputs": inputs})
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
-        """One head sample (also the head angles the snapshot shows)."""
-        self.owner.head_rad = (pan_rad, tilt_rad)
+        """One head sample."""
         self.tap(KIND_HEAD, t_host_ns, {"pan_rad": pan_rad, "tilt_rad": tilt_rad})
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
@@ -278,8 +161,10 @@ class RecordingSink:
         self.tap(KIND_EVENT, t_host_ns, {"ref_mark_mm": s_mm})
 
 
-def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
-    """The real controller on the configured link (the daemon's default factory)."""
+def controller_factory(
+    config: Config, record_tap: RecordTap, transport: Transport | None = None
+) -> Controller:
+    """The real controller on the configured link (or on `transport`, for an emulator)."""
     session = SessionConfig(heartbeat_interval_s=config.link.heartbeat_ms / 1000.0)
     backoff = BackoffConfig(max_s=config.link.reconnect_max_s)
 
@@ -287,15 +172,25 @@ def controller_factory(config: Config, record_tap: RecordTap) -> LinkController:
         record_tap(KIND_EVENT, time.monotonic_ns(), {"link_event": event.value, "detail": detail})
 
     shedding = XBEE_SHEDDING if config.link.kind == "xbee" else None
+    raw = attach_link_tap(transport or build_transport(config), record_tap)  # bytes recorded
     ctrl = Controller(
-        build_transport(config), session, backoff, on_event=on_event, shedding=shedding
+        raw,
+        session,
+        backoff,
+        on_event=on_event,
+        shedding=shedding,
+        track_window=track_window(config),
+        streams_hz=config_stream_rates(config),
     )
-    ranging = bool(rig_spec(config).hall.surfaces)
-    adapter = LinkController(ctrl, stream_rates(config.link.kind, ranging))
-    ctrl.add_sink(RecordingSink(record_tap, adapter))
-    ctrl.add_sink(adapter.range_tap)  # the readings a workpiece survey averages
+    ctrl.add_sink(RecordingSink(record_tap))
+    attach_range_tap(ctrl)  # the readings a workpiece or home survey averages
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
-    return adapter
+    return ctrl
+
+
+def config_stream_rates(config: Config) -> dict[Stream, int]:
+    """The telemetry rates for the configured link (with ranging when surfaces are surveyed)."""
+    return stream_rates(config.link.kind, bool(rig_spec(config).hall.surfaces))
 
 
 # ---- rig, camera, model --------------------------------------------------------------------
@@ -315,6 +210,15 @@ def build_track(config: Config) -> Track:
         return rig_build_track(rig_spec(config).track)
     except ValueError as exc:
         raise WiringError(f"track: {exc}") from exc
+
+
+def track_window(config: Config) -> TrackWindow | None:
+    """An open track's extent in controller millimetres (its zero is at the rig's home)."""
+    track = build_track(config)
+    if track.closed:
+        return None
+    home = rig_spec(config).track.home.value
+    return TrackWindow(-home, track.length_mm - home)
 
 
 def build_rig(config: Config) -> Rig:
@@ -419,23 +323,24 @@ class RateMeter:
         while self._times and self._times[0] < cutoff:
             self._times.pop(0)
 
-    def rate(self) -> float:
-        """Recent events per second (0 until two events)."""
+    def rate(self, now_ns: int | None = None) -> float:
+        """Events per second over the window ending now (0 until two events, 0 when they stop)."""
+        cutoff = (time.monotonic_ns() if now_ns is None else now_ns) - self.window_ns
+        while self._times and self._times[0] < cutoff:
+            self._times.pop(0)
         if len(self._times) < 2:
             return 0.0
         span_s = (self._times[-1] - self._times[0]) / 1e9
         return (len(self._times) - 1) / span_s if span_s > 0 else 0.0
 
 
-def _flag_names(faults: Fault) -> list[str]:
-    """Names of the set fault bits."""
-    return [f.name for f in Fault if f.value and f in faults and f.name is not None]
-
-
-def pose_sample(t_ns: int, T_w_c: FloatArray, state: str, s_mm: float, index: int) -> PoseSample:
-    """A PoseSample with plain nested tuples (msgpack- and FreeD-ready)."""
+def pose_sample(
+    t_ns: int, T_w_c: FloatArray, snapshot: Mapping[str, Any], s_mm: float, index: int
+) -> PoseSample:
+    """A PoseSample with plain nested tuples (msgpack- and FreeD-ready), flagged when unhomed."""
     matrix = tuple(tuple(float(x) for x in row) for row in T_w_c)
-    return PoseSample(t_ns, matrix, state, float(s_mm), index)
+    state = str(snapshot.get("state", "UNKNOWN"))
+    return PoseSample(t_ns, matrix, state, float(s_mm), index, bool(snapshot.get("homed")))
 
 
 # ---- the loops ---------------------------------------------------------------------------
@@ -447,7 +352,7 @@ class PosePublisher:
     def __init__(
         self,
         poses: PoseSource,
-        controller: LinkController,
+        controller: Controller,
         sink: PoseSink,
         rate_hz: float,
         feed: PoseFeed | None = None,
@@ -460,6 +365,7 @@ class PosePublisher:
         self.period_ns = round(1e9 / rate_hz)
         self.published = 0
         self.stale = 0  # ticks without a usable pose (no samples yet, or the stream stalled)
+        self.off_track = 0  # of those, ticks with the trolley outside the surveyed open track
         self._meter = RateMeter()
 
     @property
@@ -489,11 +395,12 @@ class PosePublisher:
         pose = self.poses.pose_at(t_ns)
         if not pose.ok or pose.T_w_c is None:
             self.stale += 1
+            self.off_track += pose.status is LookupStatus.OFF_TRACK
             return False
-        state = str(self.controller.snapshot().get("state", "UNKNOWN"))
         self.published += 1
         self._meter.tick(t_ns)
-        self.sink(pose_sample(t_ns, pose.T_w_c, state, pose.s_mm, self.published))
+        snapshot = self.controller.snapshot()
+        self.sink(pose_sample(t_ns, pose.T_w_c, snapshot, pose.s_mm, self.published))
         return True
 
 
@@ -503,16 +410,15 @@ class CameraPoseLoop:
     def __init__(
         self,
         source: FrameSource,
-        registrar: Registrar,
-        controller: LinkController,
+        registrar: Callable[[Frame], Registration],
+        controller: Controller,
         sink: PoseSink,
         record_tap: RecordTap,
-        feed: PoseFeed | None = None,
+        poses: tuple[PoseSource, PoseFeed] | None = None,
     ) -> None:
-        self.frame_tap = FrameTap(source)  # the newest frame, for calibration runs
+        self.frame_tap = LatestFrameTap(source)  # the newest frame, for calibration runs
         self.source: FrameSource = self.frame_tap
-        self.registrar = registrar
-        self.feed = feed
+        self.poses = poses  # what apply_rig swaps a changed rig file into
         self.rig: RigSpec | None = None  # the rig file's content the frames are registered with
         self.controller = controller
         self.sink = sink
@@ -528,14 +434,14 @@ class CameraPoseLoop:
 
     def apply_rig(self, config: Config) -> None:
         """A changed rig file (SIGHUP): camera model, workpiece and kinematics from now on."""
-        old = self.registrar
-        if self.feed is not None:
-            apply_rig(config, old.poses, self.feed, exposure_latency_ms(config))
-        T_w_p = workpiece_pose(config)
-        self.registrar = Registrar(
-            old.poses, build_camera(config), build_model(config), lambda t_ns: T_w_p, draw=False
-        )
-        self.loop.process = self.registrar  # the next frame registers with the new rig
+        if self.poses is not None:
+            poses, feed = self.poses
+            apply_rig(config, poses, feed, exposure_latency_ms(config))
+            T_w_p = workpiece_pose(config)
+            registrar = Registrar(
+                poses, build_camera(config), build_model(config), lambda t_ns: T_w_p, draw=False
+            )
+            self.loop.process = FrameTap(registrar, self.record_tap)  # the next frame uses it
         self.rig = rig_spec(config)
 
     async def run(self) -> None:
@@ -547,15 +453,13 @@ class CameraPoseLoop:
             self.source.close()
 
     def _publish(self, reg: Registration) -> None:
-        """A registered frame → recording record and (if it has a pose) a PoseSample."""
-        frame = {"index": reg.index, "exposure_ns": reg.exposure_ns, "status": reg.status.value}
-        self.record_tap(KIND_FRAME, reg.exposure_ns, frame)
+        """A registered frame (recorded by its FrameTap) → a PoseSample if it has a pose."""
         if reg.T_w_c is None:
             self.unregistered += 1
             return
         self._meter.tick(time.monotonic_ns())
-        state = str(self.controller.snapshot().get("state", "UNKNOWN"))
-        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, state, reg.s_mm, reg.index))
+        snapshot = self.controller.snapshot()
+        self.sink(pose_sample(reg.exposure_ns, reg.T_w_c, snapshot, reg.s_mm, reg.index))
 
 
 def open_camera(config: Config) -> FrameSource | None:
@@ -583,22 +487,23 @@ def frame_loop_factory(
 
     `camera_source` replaces the configured camera (the demo hands the simulator's camera in).
     """
-    if not isinstance(controller, LinkController):
+    if not isinstance(controller, Controller):
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
     camera = camera_source or open_camera(config)
     latency_ms = exposure_latency_ms(config) if camera is not None else 0.0
     poses, feed = build_pose_source(
-        config, controller.stream_rates_hz, latency_ms, controller.chain_pitch_mm
+        config, config_stream_rates(config), latency_ms, controller.chain_pitch_mm
     )
-    controller.ctrl.add_sink(feed)
-    controller.track_feed = feed
+    controller.add_sink(feed)
+    controller.add_stats(feed.stats)
     if camera is None:
         publisher = PosePublisher(poses, controller, pose_sink, rig_spec(config).camera.fps, feed)
         publisher.rig = rig_spec(config)
         return publisher
     T_w_p = workpiece_pose(config)  # fixed: measured at set-up, the workpiece does not move
     registrar = Registrar(poses, build_camera(config), model, lambda t_ns: T_w_p, draw=False)
-    camera_loop = CameraPoseLoop(camera, registrar, controller, pose_sink, record_tap, feed)
+    recorded = FrameTap(registrar, record_tap)  # frames and their images to the recording
+    camera_loop = CameraPoseLoop(camera, recorded, controller, pose_sink, record_tap, (poses, feed))
     camera_loop.rig = rig_spec(config)
     return camera_loop

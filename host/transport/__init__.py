@@ -17,9 +17,9 @@ from typing import Any
 
 from host.transport.base import (
     FrameTooLargeError,
-    LinkState,
     Transport,
     TransportError,
+    TransportState,
     TransportStats,
 )
 from host.transport.can import CanTransport
@@ -41,10 +41,10 @@ _INT_OPTIONS = frozenset(("baudrate", "api_mode", "node_id", "bitrate"))
 __all__ = [
     "BACKENDS",
     "FrameTooLargeError",
-    "LinkState",
     "Transport",
     "TransportConfigError",
     "TransportError",
+    "TransportState",
     "TransportStats",
     "create_transport",
     "open_transport",

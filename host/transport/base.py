@@ -11,12 +11,18 @@ from __future__ import annotations
 
 import abc
 import enum
+import logging
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 Receiver = Callable[[bytes], None]
 LostHandler = Callable[[Exception | None], None]
+# Sees every received chunk and every sent frame: ("rx" | "tx", host monotonic ns, bytes).
+ByteTap = Callable[[str, int, bytes], None]
+
+log = logging.getLogger(__name__)
 
 
 class TransportError(ConnectionError):
@@ -27,7 +33,7 @@ class FrameTooLargeError(TransportError):
     """A frame longer than the backend can carry was refused; the link stays up."""
 
 
-class LinkState(enum.Enum):
+class TransportState(enum.Enum):
     """Where a transport is in its life."""
 
     CLOSED = "closed"
@@ -62,43 +68,53 @@ class Transport(abc.ABC):
 
     def __init__(self) -> None:
         self.stats = TransportStats()
-        self.state = LinkState.CLOSED
+        self.state = TransportState.CLOSED
         self._receiver: Receiver | None = None
         self._on_lost: LostHandler | None = None
+        self._tap: ByteTap | None = None
+        # Host monotonic ns of the chunk being delivered and of the last frame written: the
+        # session stamps its clock probes with these, the very stamps the tap records.
+        self.rx_time_ns = 0
+        self.tx_time_ns = 0
 
     def set_receiver(self, receiver: Receiver, on_lost: LostHandler | None = None) -> None:
         """Route received bytes (and the news of a lost link) to the session."""
         self._receiver = receiver
         self._on_lost = on_lost
 
+    def set_tap(self, tap: ByteTap | None) -> None:
+        """Hand every received chunk and sent frame, with its host time, to `tap` (recording)."""
+        self._tap = tap
+
     async def open(self) -> None:
         """Open the link; TransportError with the reason if the device is not there."""
-        self.state = LinkState.OPENING
+        self.state = TransportState.OPENING
         try:
             await self._open()
         except TransportError:
-            self.state = LinkState.CLOSED
+            self.state = TransportState.CLOSED
             raise
         except (OSError, ValueError) as exc:
-            self.state = LinkState.CLOSED
+            self.state = TransportState.CLOSED
             raise TransportError(f"{self.describe()}: {exc}") from exc
-        self.state = LinkState.OPEN
+        self.state = TransportState.OPEN
         self.stats.opens += 1
 
     async def close(self) -> None:
         """Close the link; safe to call twice or on a lost link."""
-        if self.state is not LinkState.CLOSED:
-            self.state = LinkState.CLOSED
+        if self.state is not TransportState.CLOSED:
+            self.state = TransportState.CLOSED
             await self._close()
 
     def send(self, frame: bytes) -> None:
         """Queue one wire frame for sending without blocking; TransportError when not open."""
-        if self.state is not LinkState.OPEN:
+        if self.state is not TransportState.OPEN:
             raise TransportError(f"{self.describe()} is {self.state.value}")
         limit = self.max_frame_bytes
         if limit is not None and len(frame) > limit:
             self.stats.bump("oversize_refused")
             raise FrameTooLargeError(f"{self.describe()}: frame of {len(frame)} bytes > {limit}")
+        t_ns = time.monotonic_ns()  # taken before the write, as near the caller's stamp as can be
         try:
             self._write(frame)
         except (OSError, ValueError) as exc:
@@ -107,6 +123,9 @@ class Transport(abc.ABC):
             raise TransportError(f"{self.describe()}: {exc}") from exc
         self.stats.frames_out += 1
         self.stats.bytes_out += len(frame)
+        self.tx_time_ns = t_ns
+        if self._tap is not None:
+            self._tapped("tx", t_ns, frame)
 
     def resync(self) -> None:
         """Forget partial receive state when a session (re)starts; backends with any override.
@@ -137,13 +156,26 @@ class Transport(abc.ABC):
         """Backends call this with received bytes."""
         self.stats.chunks_in += 1
         self.stats.bytes_in += len(data)
+        self.rx_time_ns = time.monotonic_ns()
+        if self._tap is not None:
+            self._tapped("rx", self.rx_time_ns, data)
         if self._receiver is not None:
             self._receiver(data)
 
+    def _tapped(self, direction: str, t_ns: int, data: bytes) -> None:
+        """Give the tap its bytes; a failing tap is counted, never the link's problem."""
+        assert self._tap is not None
+        try:
+            self._tap(direction, t_ns, bytes(data))
+        except Exception:
+            self.stats.bump("tap_errors")
+            if self.stats.extra["tap_errors"] == 1:
+                log.exception("the link byte tap failed (counted in tap_errors from now on)")
+
     def _lost(self, exc: Exception | None) -> None:
         """Backends call this when the device went away (unplugged, bus off, radio gone)."""
-        if self.state is LinkState.OPEN:
-            self.state = LinkState.LOST
+        if self.state is TransportState.OPEN:
+            self.state = TransportState.LOST
             self.stats.losses += 1
             if self._on_lost is not None:
                 self._on_lost(exc)

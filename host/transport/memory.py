@@ -14,7 +14,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from host.transport.base import LinkState, Transport, TransportError
+from host.transport.base import Transport, TransportError, TransportState
 
 Sink = Callable[[bytes], None]
 FIFO_TOKEN = -1  # key of the one timer of an order-keeping channel
@@ -179,12 +179,12 @@ class MemoryTransport(Transport):
 
     def _to_peer(self, frame: bytes) -> None:
         """Frames reach the peer only while the link is open."""
-        if self.state is LinkState.OPEN:
+        if self.state is TransportState.OPEN:
             self._peer(frame)
 
     def _from_peer(self, data: bytes) -> None:
         """Bytes reach the receiver only while the link is open."""
-        if self.state is LinkState.OPEN:
+        if self.state is TransportState.OPEN:
             self._deliver(data)
 
 

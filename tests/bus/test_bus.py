@@ -158,7 +158,7 @@ async def test_fleet_sees_rigs_come_and_go(rig: tuple[Rig, zenoh.Session, int]) 
 async def test_orbitar_fleet_once_prints_json(rig: tuple[Rig, zenoh.Session, int]) -> None:
     r, _, port = rig
     r.bus.publish_state({"state": "READY", "position_mm": 10.0})
-    args = build_parser().parse_args(
+    args = build_parser("fleet").parse_args(
         ["fleet", "--once", "--json", "--wait", "1.0", "--connect", f"tcp/127.0.0.1:{port}"]
     )
     out = io.StringIO()

@@ -69,7 +69,7 @@ async def test_daemon_on_the_bus_and_as_opentrackio(tmp_path: Path) -> None:
     notify.bind(str(tmp_path / "notify.sock"))
     notify.setblocking(False)
     notes = Notifications(notify)
-    env = {k: v for k, v in os.environ.items() if k != "ORBITAR_FAKE_CONTROLLER"}
+    env = dict(os.environ)
     env["NOTIFY_SOCKET"] = str(tmp_path / "notify.sock")
     with open(tmp_path / "daemon.log", "wb") as log:
         daemon = await asyncio.create_subprocess_exec(

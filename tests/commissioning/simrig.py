@@ -19,7 +19,6 @@ from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap, RangeTap
 from host.config import Config, ControlConfig
 from host.control.client import ControlClient
-from host.control.fake import FakeController
 from host.frames.sources import Frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
@@ -27,6 +26,7 @@ from host.geometry.rangefinder import RangeScene, hall_walls
 from host.geometry.transforms import euler_zyx, make_T, rot_x
 from host.rig import HallSpec, RigSpec, Scalar, SurfaceSpec, save_rig
 from host.service.daemon import Daemon
+from tests.fakes import MemoryController as FakeController
 
 FPS = 15.0
 BOARD = BoardSpec(squares_x=8, squares_y=6, square_mm=70.0, marker_mm=52.0)

@@ -15,9 +15,9 @@ import pytest
 from host.config import Config, ControlConfig, loads_config
 from host.control.api import PoseSample
 from host.control.cli_commands import emit
-from host.control.fake import FakeController
 from host.control.ops import OpContext
 from host.control.server import ControlServer
+from tests.fakes import MemoryController
 
 POSE = PoseSample(1, ((1, 0, 0, 10.0), (0, 0, 1, 20.0), (0, -1, 0, 4000.0), (0, 0, 0, 1)), "READY")
 
@@ -34,8 +34,8 @@ async def cli(*argv: str) -> tuple[int, str, str]:
 
 
 @pytest.fixture
-async def served(tmp_path: Path) -> AsyncIterator[tuple[ControlServer, FakeController, str]]:
-    fake = FakeController()
+async def served(tmp_path: Path) -> AsyncIterator[tuple[ControlServer, MemoryController, str]]:
+    fake = MemoryController()
     await fake.connect()
     config = ControlConfig(socket_path=str(tmp_path / "c.sock"))
     server = ControlServer(OpContext(fake, latest_pose=lambda: POSE), config)
@@ -44,7 +44,7 @@ async def served(tmp_path: Path) -> AsyncIterator[tuple[ControlServer, FakeContr
     await server.close()
 
 
-async def test_motion_commands(served: tuple[ControlServer, FakeController, str]) -> None:
+async def test_motion_commands(served: tuple[ControlServer, MemoryController, str]) -> None:
     _, fake, sock = served
     assert (await cli("home", "--socket", sock))[0] == 0
     code, out, _ = await cli("move", "1500", "--speed", "80", "--socket", sock)
@@ -56,7 +56,7 @@ async def test_motion_commands(served: tuple[ControlServer, FakeController, str]
     assert fake.state.name == "ESTOP"
 
 
-async def test_status_prints_fields(served: tuple[ControlServer, FakeController, str]) -> None:
+async def test_status_prints_fields(served: tuple[ControlServer, MemoryController, str]) -> None:
     code, out, _ = await cli("status", "--socket", served[2])
     assert code == 0
     assert "link_up: True" in out
@@ -64,7 +64,7 @@ async def test_status_prints_fields(served: tuple[ControlServer, FakeController,
 
 
 async def test_refused_request_exits_1_with_reason(
-    served: tuple[ControlServer, FakeController, str],
+    served: tuple[ControlServer, MemoryController, str],
 ) -> None:
     code, _, err = await cli("move", "100", "--socket", served[2])  # not homed
     assert code == 1
@@ -80,7 +80,7 @@ async def test_no_daemon_exits_1(tmp_path: Path) -> None:
     assert "daemon not running" in err
 
 
-async def test_watch_counts_updates(served: tuple[ControlServer, FakeController, str]) -> None:
+async def test_watch_counts_updates(served: tuple[ControlServer, MemoryController, str]) -> None:
     server, _, sock = served
     proc = asyncio.create_task(cli("watch", "--count", "3", "--socket", sock))
     while not proc.done():
@@ -131,7 +131,7 @@ async def closed_pipe_cli(*argv: str) -> tuple[int, str]:
 
 
 async def test_status_into_a_closed_pipe_exits_quietly(
-    served: tuple[ControlServer, FakeController, str],
+    served: tuple[ControlServer, MemoryController, str],
 ) -> None:
     for argv in (("status",), ("status", "--json"), ("home",)):
         code, err = await closed_pipe_cli(*argv, "--socket", served[2])

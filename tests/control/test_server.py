@@ -19,12 +19,12 @@ from host.config import ControlConfig, load_config
 from host.config_fields import ConfigError
 from host.control.api import PoseSample
 from host.control.client import ControlClient, ControlRequestError
-from host.control.fake import FakeController
 from host.control.limits import TokenBucket
 from host.control.ops import OpContext, Role, dispatch
 from host.control.server import ControlServer, ControlServerError
 from host.control.wire import MAX_MESSAGE_BYTES, pack, read_message
 from protocol import ParamId
+from tests.fakes import MemoryController as FakeController
 
 OP_TOKEN = "operator-secret-0123456789"
 VIEW_TOKEN = "viewer-secret-0123456789"
@@ -235,7 +235,7 @@ async def test_estop_behind_a_full_pipeline_runs_at_once(
 ) -> None:
     gate = asyncio.Event()
 
-    async def slow_param(param: ParamId) -> int:
+    async def slow_param(param_id: int) -> int:
         await gate.wait()
         return 0
 

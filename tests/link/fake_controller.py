@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
+import struct
 from collections import Counter, OrderedDict
 from dataclasses import dataclass, field
 
 from host.transport.memory import Impairment, MemoryTransport
-from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Flag, FrameDecoder, encode_frame
-from protocol.enums import NakCode, State, Stream
+from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Flag, FrameDecoder, cobs, spec_of
+from protocol.crc import crc16
+from protocol.enums import State, Stream
 from protocol.messages import (
     Ack,
     ClockSync,
@@ -26,6 +29,7 @@ from protocol.messages import (
     Status,
     StreamSet,
 )
+from protocol.schema import HEADER_FORMAT
 
 
 @dataclass
@@ -40,7 +44,7 @@ class FakeController:
     counts_per_rev: int = 4000
     reply_delay_s: float = 0.0
     silent: bool = False  # swallow everything: a hung controller
-    nak_next: tuple[NakCode, State] | None = None
+    nak_next: tuple[int, int] | None = None  # (code, state): may be values we do not know
     executions: Counter[int] = field(default_factory=Counter)  # seq → times executed
     executed: list[object] = field(default_factory=list)
     streams: dict[int, int] = field(default_factory=dict)
@@ -82,7 +86,7 @@ class FakeController:
     def send(self, message: object) -> None:
         """Emit one frame towards the host with the next controller seq."""
         assert self.transport is not None
-        frame = encode_frame(message, self._seq)
+        frame = unchecked_frame(message, self._seq)
         self._seq = (self._seq + 1) % 65536
         self.transport.inject(frame)
 
@@ -176,6 +180,17 @@ class FakeController:
             self.rx_window,
             int(self.state),
         )
+
+
+def unchecked_frame(message: object, seq: int) -> bytes:
+    """Wire bytes for a message without the encoder's range checks: what a newer firmware (or a
+    bit error the CRC misses) may send, such as a state or NAK code this host does not know."""
+    spec = spec_of(message)
+    values = [getattr(message, f.name) for f in dataclasses.fields(message)]  # type: ignore[arg-type]
+    raw = struct.pack(HEADER_FORMAT, PROTOCOL_VERSION, 0, seq, spec.id)
+    raw += struct.pack(spec.struct_format, *values)
+    raw += crc16(raw).to_bytes(2, "big")
+    return bytes(cobs.encode(raw)) + b"\x00"
 
 
 ENCODER = int(Stream.ENCODER)

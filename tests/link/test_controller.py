@@ -250,3 +250,38 @@ async def test_lost_frames_shed_the_streams_until_the_link_is_clean() -> None:
     finally:
         await ctrl.close()
         await fake.close()
+
+
+async def test_start_retries_an_absent_device_and_pushes_each_change_with_its_cause() -> None:
+    fake = FakeController()
+    transport = fake.wire()
+    real_open = transport._open
+    failures = [2]
+
+    async def absent_then_present() -> None:
+        if failures[0]:
+            failures[0] -= 1
+            raise FileNotFoundError("no such device /dev/ttyACM0")
+        await real_open()
+
+    transport._open = absent_then_present  # type: ignore[method-assign]
+    ctrl = Controller(transport, CFG, BACKOFF, seed=1)
+    changes: list[tuple[str, str, str]] = []
+    ctrl.subscribe(lambda c: changes.append((c.topic, c.snapshot["link"], c.snapshot.link_detail)))
+    ctrl.start()  # never raises: an absent controller is a state
+    try:
+        async with asyncio.timeout(2.0):
+            while not ctrl.connected:
+                await asyncio.sleep(0.01)
+        downs = [detail for topic, link, detail in changes if link == "down"]
+        assert downs
+        assert all("no such device /dev/ttyACM0" in d for d in downs)  # the cause, not "backoff"
+        assert changes[-1][:2] == ("link", "up")
+        assert ctrl.link_error == ""
+        fake.send_status(State.MOVING, 10, 20)
+        await asyncio.sleep(0.01)
+        assert changes[-1][:2] == ("state", "up")  # pushed as it arrived
+        assert ctrl.snapshot()["state"] == "MOVING"
+    finally:
+        await ctrl.close()
+        await fake.close()

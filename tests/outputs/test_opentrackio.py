@@ -246,14 +246,24 @@ async def test_an_output_that_cannot_open_is_reported_not_fatal(
     async def unreachable(self: object) -> None:
         raise OSError("[Errno 101] Network is unreachable")
 
-    monkeypatch.setattr("host.outputs.udp.UdpFanout.start", unreachable)
-    config = loads_config("[outputs.opentrackio]\nenabled = true\n")
+    first = loads_config('[outputs.opentrackio]\nenabled = true\ndestinations = ["127.0.0.1:9"]\n')
+    moved = loads_config('[outputs.opentrackio]\nenabled = true\ndestinations = ["127.0.0.2:9"]\n')
     outputs = TrackingOutputs()
-    await outputs.start(config)
     try:
+        await outputs.start(first)
+        running = outputs.opentrackio
+        assert running is not None
+        monkeypatch.setattr("host.outputs.udp.UdpFanout.start", unreachable)
+        await outputs.start(moved)  # a reload whose receiver cannot be opened
+        assert outputs.opentrackio is running  # the running output stays in force
         stats = outputs.stats()
         assert stats["freed"] is None
-        assert stats["opentrackio"] == {"error": "[Errno 101] Network is unreachable"}
+        assert stats["opentrackio"]["error"] == "[Errno 101] Network is unreachable"
+        assert stats["opentrackio"]["sent"] == 0
+        outputs.close()
+        await outputs.start(moved)  # a first start that cannot open: nothing runs, no raise
+        assert outputs.opentrackio is None
+        assert outputs.stats()["opentrackio"] == {"error": "[Errno 101] Network is unreachable"}
         outputs.send(PoseSample(0, np.eye(4), "READY"))  # nothing open: nothing raised
     finally:
         outputs.close()

@@ -13,7 +13,7 @@ from host.recording.reader import Record, RecordingError
 
 def write_samples(directory: Path, n: int, **kw: object) -> RecordingWriter:
     """A recording of n encoder samples and n frames."""
-    writer = RecordingWriter(directory, **kw)  # type: ignore[arg-type]
+    writer = RecordingWriter(directory, drop_when_full=False, **kw)  # type: ignore[arg-type]
     writer.open()
     for i in range(n):
         writer.write("encoder", 1_000 * i, {"count": i, "mcu_time_us": 250 * i})
@@ -45,7 +45,7 @@ def test_rotation_keeps_the_newest_files(tmp_path: Path) -> None:
     writer = write_samples(tmp_path, 2000, rotate_mb=0.01, keep_files=3)
     files = writer.files()
     assert len(files) == 3
-    assert files[-1] == writer.current
+    assert files[-1] == writer.last_file
     counts = [r.data["count"] for r in RecordingReader(files) if r.kind == "encoder"]
     assert counts[-1] == 1999  # the newest survive, in order, with no gap inside the kept files
     assert counts == list(range(counts[0], 2000))
@@ -53,32 +53,55 @@ def test_rotation_keeps_the_newest_files(tmp_path: Path) -> None:
 
 
 def test_truncated_last_record_is_tolerated(tmp_path: Path) -> None:
-    writer = write_samples(tmp_path, 10)
-    assert writer.current is not None
-    data = writer.current.read_bytes()
-    writer.current.write_bytes(data[:-7])  # the writer was killed mid-record
-    reader = RecordingReader([writer.current])
+    path = write_samples(tmp_path, 10).last_file
+    assert path is not None
+    data = path.read_bytes()
+    path.write_bytes(data[:-7])  # the writer was killed mid-record
+    reader = RecordingReader([path])
     encoder = [r for r in reader if r.kind == "encoder"]
     assert len(encoder) == 10  # the cut record was the last frame
     assert reader.truncated_bytes > 0
 
 
 def test_garbage_in_the_middle_stops_that_file_only(tmp_path: Path) -> None:
-    writer = write_samples(tmp_path, 10)
-    assert writer.current is not None
-    data = writer.current.read_bytes()
-    writer.current.write_bytes(data[:200] + b"\xc1" * 10 + data[200:])
-    reader = RecordingReader([writer.current])
+    path = write_samples(tmp_path, 10).last_file
+    assert path is not None
+    data = path.read_bytes()
+    path.write_bytes(data[:200] + b"\xc1" * 10 + data[200:])
+    reader = RecordingReader([path])
     records = list(reader)
     assert 0 < len(records) < 21
     assert reader.corrupt_files == 1
 
 
-def test_not_a_recording_is_a_clear_error(tmp_path: Path) -> None:
+def test_a_file_that_is_not_a_recording_is_skipped_and_named(tmp_path: Path) -> None:
     path = tmp_path / "x.orec"
     path.write_bytes(msgpack.packb({"k": "encoder", "t": 0, "d": {}}))
+    reader = RecordingReader([path])
+    assert list(reader) == []
+    assert reader.skipped == [(str(path), "not an Orbitar recording")]
     with pytest.raises(RecordingError, match="not an Orbitar recording"):
-        list(RecordingReader([path]))
+        list(RecordingReader([path], strict=True))
+
+
+def test_an_unknown_format_version_is_refused_with_the_versions_read(tmp_path: Path) -> None:
+    path = tmp_path / "orbitar-000001.orec"
+    header = {"format": "orbitar-recording", "version": 99}
+    path.write_bytes(msgpack.packb({"k": "header", "t": 0, "d": header}))
+    with pytest.raises(RecordingError) as caught:
+        list(RecordingReader([path], strict=True))
+    assert "version 99 not supported (this reader reads 1, 2)" in str(caught.value)
+    assert "newer orbitar wrote it" in str(caught.value)
+
+
+def test_version_1_recordings_still_read(tmp_path: Path) -> None:
+    path = tmp_path / "orbitar-000001.orec"
+    header = {"format": "orbitar-recording", "version": 1, "unix_time": 0.0}
+    path.write_bytes(
+        msgpack.packb({"k": "header", "t": 0, "d": header})
+        + msgpack.packb({"k": "encoder", "t": 5, "d": {"s_mm": 1.0}})
+    )
+    assert [r.kind for r in RecordingReader([path], strict=True)] == ["header", "encoder"]
 
 
 def test_replay_is_deterministic_and_filters_kinds(tmp_path: Path) -> None:
@@ -95,10 +118,9 @@ def test_replay_is_deterministic_and_filters_kinds(tmp_path: Path) -> None:
     assert first.out_of_order == 0
 
 
-def test_writer_on_unwritable_directory_raises_at_open(tmp_path: Path) -> None:
-    blocker = tmp_path / "file"
-    blocker.write_text("not a dir")
-    writer = RecordingWriter(blocker / "sub")
-    with pytest.raises(NotADirectoryError):
-        writer.open()
-    assert writer.write("encoder", 0, {}) is False
+def test_a_rotation_size_below_one_header_still_writes_every_record(tmp_path: Path) -> None:
+    writer = write_samples(tmp_path, 5, rotate_mb=1e-6, keep_files=100)  # 1 byte per file
+    assert [r.data["count"] for r in RecordingReader([tmp_path]) if r.kind == "encoder"] == [
+        0, 1, 2, 3, 4,
+    ]  # fmt: skip
+    assert len(writer.files()) == 11  # one record per file after its header, and the next file

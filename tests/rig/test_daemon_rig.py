@@ -58,7 +58,7 @@ async def test_a_bad_rig_file_on_sighup_keeps_the_running_rig(tmp_path: Path) ->
     loop = daemon.frame_loop
     assert isinstance(loop, PosePublisher)
     before = np.array(loop.poses.rig.T_r_c)
-    _rewrite(rig, "[track.home]\nvalue_mm = -5\n")
+    _rewrite(rig, "[camera]\nfps = 0\n")
     assert await daemon.reload() == []
     assert loop.feed is not None
     assert loop.feed.home_s_mm == 100.0

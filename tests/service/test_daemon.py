@@ -17,6 +17,7 @@ import pytest
 
 from host.control.client import ControlClient
 from host.outputs.freed import decode_d1
+from host.service.lock import EXIT_ALREADY_RUNNING
 
 CONFIG = """
 [control]
@@ -79,8 +80,14 @@ class Running:
         return (self.dir / "stderr.log").read_text()
 
 
+FAKE_DAEMON = (sys.executable, "-m", "tests.service.fake_daemon")
+
+
 async def start_daemon(
-    tmp_path: Path, fake: str = "1", grace: float = 30.0, extra_env: dict[str, str] | None = None
+    tmp_path: Path,
+    unreachable: bool = False,
+    grace: float = 30.0,
+    extra_env: dict[str, str] | None = None,
 ) -> tuple[Running, asyncio.DatagramTransport]:
     """The daemon in a subprocess, with a notify socket and a FreeD receiver of our own."""
     loop = asyncio.get_running_loop()
@@ -93,11 +100,11 @@ async def start_daemon(
     sock.setblocking(False)
     env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
     env.update(NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC="400000")
-    env.update({"ORBITAR_FAKE_CONTROLLER": fake, **(extra_env or {})})
+    env.update(extra_env or {})
+    flags = ["--unreachable"] if unreachable else []
     with open(tmp_path / "stderr.log", "wb") as stderr:
         proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "host.service", "daemon", "--config", str(config),
-            env=env, stderr=stderr,
+            *FAKE_DAEMON, *flags, "daemon", "--config", str(config), env=env, stderr=stderr,
         )  # fmt: skip
     return Running(proc, Notifications(sock), freed, tmp_path, config), transport
 
@@ -203,7 +210,7 @@ async def test_bad_reload_keeps_running(daemon: Running) -> None:
 
 async def test_ready_after_grace_says_why_without_link(tmp_path: Path) -> None:
     running, transport = await start_daemon(
-        tmp_path, fake="fail", grace=0.3, extra_env={"INVOCATION_ID": "x"}
+        tmp_path, unreachable=True, grace=0.3, extra_env={"INVOCATION_ID": "x"}
     )
     try:
         ready = await running.notes.wait_for("READY=1")
@@ -246,3 +253,20 @@ async def test_bad_rig_file_exits_2_naming_its_key(tmp_path: Path) -> None:
     _, err = await proc.communicate()
     assert proc.returncode == 2
     assert b"rig.toml: camera.fps = 0: out of range" in err
+
+
+async def test_second_daemon_refuses_and_leaves_the_first_alone(daemon: Running) -> None:
+    await daemon.notes.wait_for("READY=1")
+    socket_path = daemon.dir / "ctl.sock"
+    second = await asyncio.create_subprocess_exec(
+        *FAKE_DAEMON, "daemon", "--config", str(daemon.config), stderr=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+    _, err = await asyncio.wait_for(second.communicate(), 20.0)
+    assert second.returncode == EXIT_ALREADY_RUNNING
+    assert f"pid {daemon.proc.pid}" in err.decode()
+    assert "exits without touching it" in err.decode()
+    assert socket_path.exists()  # the running daemon's socket is still there, and answers
+    async with await connect(socket_path) as client:
+        assert (await client.request("status"))["service"]["phase"] == "running"
+    daemon.proc.send_signal(signal.SIGTERM)
+    assert await asyncio.wait_for(daemon.proc.wait(), 5) == 0

@@ -159,7 +159,6 @@ async def start_daemon(tmp_path: Path) -> tuple[asyncio.subprocess.Process, Noti
     sock.bind(str(tmp_path / "notify.sock"))
     sock.setblocking(False)
     env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
-    env.pop("ORBITAR_FAKE_CONTROLLER", None)
     env.update(NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC=WATCHDOG_USEC)
     with open(tmp_path / "daemon.log", "wb") as log:
         proc = await asyncio.create_subprocess_exec(
@@ -199,6 +198,11 @@ async def test_daemon_drives_the_emulated_trolley(rig: Rig) -> None:
     assert "controller link up" in ready
     assert await rig.notes.wait_for("WATCHDOG=1", 2.0)
     first = await status(rig)
+    for _ in range(50):  # the link is up at the handshake; the first STATUS follows it
+        if first["controller"]["state"] != "UNKNOWN":
+            break
+        await asyncio.sleep(0.1)
+        first = await status(rig)
     assert first["link_up"] is True
     assert first["controller"]["link"] == "up"
     assert first["controller"]["state"] in ("IDLE", "READY")

@@ -11,10 +11,10 @@ import uuid
 from pathlib import Path
 
 from host.config import Config, ControlConfig, RecordingConfig, SystemdConfig
-from host.control.fake import FakeController, FakeFrameLoop
 from host.recording import RecordingReader
 from host.service.daemon import Daemon
 from host.service.notify import Notifier
+from tests.fakes import MemoryController, MemoryFrameLoop
 
 
 def test_no_socket_means_no_op() -> None:
@@ -78,11 +78,11 @@ async def test_stalled_loop_stops_pinging_and_poses_are_recorded(tmp_path: Path)
         systemd=SystemdConfig(ready_grace_s=60.0),
         recording=RecordingConfig(enabled=True, dir=str(tmp_path)),
     )
-    fake = FakeController()
+    fake = MemoryController()
     daemon = Daemon(
         config,
         lambda cfg, tap: fake,
-        lambda cfg, ctl, sink, tap: FakeFrameLoop(fake, sink, fps=50.0),
+        lambda cfg, ctl, sink, tap: MemoryFrameLoop(fake, sink, fps=50.0),
         notifier=Notifier(env),
     )
     task = asyncio.create_task(daemon.run())

@@ -112,3 +112,21 @@ def test_malformed_sample_records_are_counted_and_skipped(
     args = argparse.Namespace(files=[str(tmp_path / "rec")], config=None, out=str(out))
     assert run(args) == 0
     assert "malformed=2" in capsys.readouterr().err
+
+
+def test_replay_names_the_files_it_skips_and_why(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    _record(tmp_path / "rec")
+    (tmp_path / "rec" / "notes.txt").write_text("operator notes")
+    (tmp_path / "rec" / "orbitar-000007.orec").write_bytes(b"")  # the disk filled at creation
+    newer = {"k": "header", "t": 0, "d": {"format": "orbitar-recording", "version": 9}}
+    (tmp_path / "rec" / "orbitar-000008.orec").write_bytes(msgpack.packb(newer))
+    args = argparse.Namespace(files=[str(tmp_path / "rec")], config=None, out=None)
+    assert run(args) == 0
+    err = capsys.readouterr().err
+    assert f"skipped {tmp_path / 'rec' / 'notes.txt'}: not named orbitar-NNNNNN.orec" in err
+    assert "orbitar-000007.orec: empty (no header was written)" in err
+    assert "orbitar-000008.orec: recording format version 9 not supported" in err
+    assert "skipped_files=3" in err
+    assert "poses=11" in err  # the good file was replayed whole

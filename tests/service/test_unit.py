@@ -16,13 +16,18 @@ REQUIRED = [
     "NotifyAccess=main",
     "WatchdogSec=10",
     "Restart=on-failure",
-    "SupplementaryGroups=dialout",
+    "SupplementaryGroups=dialout video",
+    "UMask=0027",
+    "CapabilityBoundingSet=",
+    "SystemCallFilter=@system-service",
     "RuntimeDirectory=orbitar",
     "ProtectSystem=strict",
     "NoNewPrivileges=yes",
     "RestrictAddressFamilies=AF_UNIX AF_INET AF_INET6 AF_CAN AF_NETLINK",
     "DeviceAllow=char-ttyUSB rw",
     "DeviceAllow=char-ttyACM rw",
+    "DeviceAllow=char-ttyS rw",
+    "DeviceAllow=char-video4linux rw",
 ]
 
 
@@ -31,10 +36,13 @@ def test_unit_has_the_required_settings() -> None:
     for setting in REQUIRED:
         assert setting in lines, setting
     assert "PrivateDevices=yes" not in lines  # it would hide the serial adapters
+    assert not any("char-pts" in line for line in lines)  # a pty is the simulator's, not a rig's
 
 
 def test_render_fills_exec_and_recording_dir() -> None:
-    text = render_unit("/opt/orbitar/bin/orbitar", "/etc/o.toml", "/srv/recordings")
+    text = render_unit(
+        "/opt/orbitar/bin/orbitar", "/etc/o.toml", ("/srv/recordings", "/run/orbitar")
+    )
     assert "ExecStart=/opt/orbitar/bin/orbitar daemon --config /etc/o.toml" in text
     assert "ReadWritePaths=-/var/lib/orbitar -/srv/recordings" in text
 

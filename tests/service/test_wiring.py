@@ -167,8 +167,8 @@ def test_factory_wires_the_feed_into_link_stats() -> None:
     assert controller.chain_pitch_mm() is None  # no handshake yet
     loop = frame_loop_factory(config, controller, lambda pose: None, lambda *rec: None)
     assert isinstance(loop, PosePublisher)
-    assert controller.track_feed is not None
-    controller.track_feed.on_encoder(1_000, 42.0, 0.0, 0)
+    feed = next(sink for sink in controller.sinks if isinstance(sink, PoseFeed))
+    feed.on_encoder(1_000, 42.0, 0.0, 0)
     stats = controller.link_stats()
     assert stats["raw_s_mm"] == pytest.approx(142.0)
     assert stats["chain_scale"] == 1.0
@@ -203,7 +203,7 @@ def test_the_daemon_sheds_telemetry_on_xbee_only() -> None:
         '[camera]\nsource = "none"\n'
     )
     controller = controller_factory(xbee, lambda *rec: None)
-    assert controller.ctrl.shedding is XBEE_SHEDDING
+    assert controller.shedding is XBEE_SHEDDING
     assert controller.link_stats()["telemetry_scale"] == 1.0
     serial = controller_factory(loads_config('[camera]\nsource = "none"\n'), lambda *rec: None)
-    assert serial.ctrl.shedding is None
+    assert serial.shedding is None

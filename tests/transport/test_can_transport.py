@@ -11,7 +11,7 @@ import pytest
 
 from hil_sim.links.can_node import VirtualCanNode
 from hil_sim.links.endpoint import FakeController, build
-from host.transport import LinkState, Transport, create_transport
+from host.transport import Transport, TransportState, create_transport
 from host.transport.can import CanTransport
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, encode_frame
 from protocol.can_segments import CAN_ERR_BUSOFF, Segmenter, ids_for
@@ -35,7 +35,7 @@ async def peer(channel: str) -> AsyncIterator[can.BusABC]:
     bus.shutdown()
 
 
-def state_of(transport: Transport) -> LinkState:
+def state_of(transport: Transport) -> TransportState:
     """The state, read through a call so the type checker does not pin it."""
     return transport.state
 
@@ -76,10 +76,10 @@ async def test_foreign_and_error_frames(channel: str, peer: can.BusABC) -> None:
         await rx.wait_packets(1)
         assert transport.stats.extra["can_foreign_frames"] == 1
         assert transport.stats.extra["can_error_frames"] == 1
-        assert transport.state is LinkState.OPEN
+        assert transport.state is TransportState.OPEN
         peer.send(can.Message(is_error_frame=True, arbitration_id=CAN_ERR_BUSOFF, dlc=8))
         await asyncio.wait_for(rx.lost.wait(), 2.0)
-        assert state_of(transport) is LinkState.LOST
+        assert state_of(transport) is TransportState.LOST
     finally:
         await transport.close()
 

@@ -10,7 +10,7 @@ import pytest
 
 from hil_sim.links.endpoint import build
 from hil_sim.links.faults import FaultConfig
-from host.transport import FrameTooLargeError, LinkState, Transport, TransportError
+from host.transport import FrameTooLargeError, Transport, TransportError, TransportState
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Packet, encode_frame
 from protocol.messages import EncoderSample, Heartbeat, Hello, Identify
 from tests.transport.harness import (
@@ -124,7 +124,7 @@ class TransportContract:
             assert limit == MAX_FRAME_BYTES
             with pytest.raises(FrameTooLargeError):
                 transport.send(b"\x01" * limit + b"\x00")
-            assert transport.state is LinkState.OPEN
+            assert transport.state is TransportState.OPEN
             assert transport.stats.extra["oversize_refused"] == 1
 
     async def test_close_then_reopen(self, link: Link) -> None:
@@ -136,7 +136,7 @@ class TransportContract:
             transport.send(hello(round_))
             await rx.wait_packets(round_ + 1)
             await transport.close()
-            assert transport.state is LinkState.CLOSED
+            assert transport.state is TransportState.CLOSED
             with pytest.raises(TransportError):
                 transport.send(hello(9))
         assert [value(p, "req_seq") for p in rx.packets] == [0, 1]
@@ -151,7 +151,7 @@ class TransportContract:
         try:
             await link.disconnect()
             await asyncio.wait_for(rx.lost.wait(), LOST_TIMEOUT_S)
-            assert transport.state is LinkState.LOST
+            assert transport.state is TransportState.LOST
             assert transport.stats.losses == 1
             await transport.close()
             await link.reconnect()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import tty
 
-from host.transport import LinkState, create_transport
+from host.transport import TransportState, create_transport
 
 FRAME = bytes(range(1, 26)) + b"\x00"
 
@@ -20,7 +20,7 @@ async def test_stalled_device_drops_and_counts_instead_of_buffering_forever() ->
             transport.send(FRAME)
         dropped = transport.stats.extra.get("tx_dropped_backpressure", 0)
         assert dropped > 0
-        assert transport.state is LinkState.OPEN
+        assert transport.state is TransportState.OPEN
         assert transport.stats.frames_out == 10_000
     finally:
         await transport.close()

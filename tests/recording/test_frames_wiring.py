@@ -1,0 +1,55 @@
+"""`include_frames` end to end in the daemon's wiring: a video file's frames become JPEG records."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from host.config import loads_config
+from host.recording import RecordingReader, RecordingWriter
+from host.service.wiring import CameraPoseLoop, controller_factory, frame_loop_factory
+
+FRAMES = 6
+
+
+def write_video(path: Path) -> None:
+    """A short MJPG file whose frames differ (a bar moving right)."""
+    import cv2
+
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 10.0, (64, 48))
+    assert out.isOpened()
+    for i in range(FRAMES):
+        image = np.zeros((48, 64, 3), np.uint8)
+        image[:, 8 * i : 8 * i + 8] = 255
+        out.write(image)
+    out.release()
+
+
+async def test_camera_frames_are_recorded_as_jpegs(tmp_path: Path) -> None:
+    video = tmp_path / "clip.avi"
+    write_video(video)
+    config = loads_config(f'[camera]\nsource = "{video}"\n')
+    writer = RecordingWriter(tmp_path / "rec", include_frames=True, drop_when_full=False)
+    writer.open()
+
+    def record(kind: str, t_ns: int, data: Any) -> None:  # the daemon's record tap
+        writer.write(kind, t_ns, data)
+
+    controller = controller_factory(config, record)
+    loop = frame_loop_factory(config, controller, lambda pose: None, record)
+    assert isinstance(loop, CameraPoseLoop)
+    await loop.run()  # to the end of the file (no link: every frame unregistered, all recorded)
+    assert writer.close()
+    frames = [r.data for r in RecordingReader([tmp_path / "rec"]) if r.kind == "frame"]
+    assert 1 <= len(frames) <= FRAMES  # the loop keeps the newest frame when it falls behind
+    assert writer.frames == len(frames)
+    import cv2
+
+    for frame in frames:
+        image = cv2.imdecode(np.frombuffer(frame["jpeg"], np.uint8), cv2.IMREAD_COLOR)
+        assert image is not None
+        assert image.shape == (48, 64, 3)
+        assert frame["exposure_ns"] > 0
+        assert frame["status"] != "ok"  # no samples: never a guessed pose
