@@ -13,9 +13,10 @@ from host.link.common import (
     OutsideTrack,
     ProtocolMismatch,
 )
-from host.link.controller import Controller, Motion, MotionFailed, SampleSink
+from host.link.controller import Controller, Motion, MotionFailed
 from host.link.limits import TrackWindow
 from host.link.reconnect import BackoffConfig
+from host.link.samples import SampleSink
 from host.link.session import Session, SessionConfig
 from host.link.snapshot import ControllerChange, Identity, Snapshot
 

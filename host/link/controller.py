@@ -21,7 +21,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 from host.link.common import (
     LinkError,
@@ -40,6 +40,15 @@ from host.link.limits import (
     sync_soft_limits,
 )
 from host.link.reconnect import BackoffConfig, Supervisor
+from host.link.samples import (
+    UM_PER_MM,
+    URAD_PER_RAD,
+    EncoderReading,
+    HeadReading,
+    SampleMessage,
+    SampleSink,
+    reading,
+)
 from host.link.session import SEQ_MOD, Session, SessionConfig
 from host.link.shedding import Shedder, SheddingConfig
 from host.link.snapshot import ControllerChange, Identity, Listener, Snapshot
@@ -68,8 +77,6 @@ from protocol.messages import (
 )
 
 log = logging.getLogger(__name__)
-UM_PER_MM = 1000.0
-URAD_PER_RAD = 1_000_000.0
 RING_SAMPLES = 4096  # ~4 s of encoder samples at 1 kHz
 STATUS_RATE_HZ = 20  # switched on at connect: motion completion is judged from STATUS
 DEFAULT_SPEED_MM_S = 100.0  # the paper's camera speed, when a move names none
@@ -78,22 +85,6 @@ DEFAULT_ACCEL_MM_S2 = 500.0
 
 class MotionFailed(LinkError):  # noqa: N818
     """A motion ended in FAULT or ESTOP instead of reaching its target."""
-
-
-class SampleSink(Protocol):
-    """What the pose buffer implements to receive samples in host time."""
-
-    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
-        """Track position sample."""
-
-    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
-        """Head angle sample."""
-
-    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """Rangefinder sample."""
-
-    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
-        """A reference mark passed; s_mm is the encoder position captured at its edge."""
 
 
 StatsProvider = Callable[[], Mapping[str, Any]]
@@ -537,7 +528,7 @@ class Controller:
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
             self._on_sample(msg)
 
-    def _on_sample(self, msg: EncoderSample | HeadSample | RangeSample | RefMark) -> None:
+    def _on_sample(self, msg: SampleMessage) -> None:
         """Convert to host time and units; a failing sink is logged, never the link's problem."""
         try:
             self._feed_sinks(msg)
@@ -545,32 +536,21 @@ class Controller:
             self.sink_errors += 1
             log.exception("a sample sink failed on %s", type(msg).__name__)
 
-    def _feed_sinks(self, msg: EncoderSample | HeadSample | RangeSample | RefMark) -> None:
+    def _feed_sinks(self, msg: SampleMessage) -> None:
         """Convert to host time and units; feed the ring and the sinks."""
-        clock = self.session.clock
-        if not clock.ready or self.identity is None:
+        sample = reading(msg, self.session.clock, self.identity)
+        if sample is None:
             self.unsynced_samples += 1
             return
-        t_ns = clock.mcu_to_host_ns(msg.mcu_time_us)
-        if isinstance(msg, EncoderSample):
-            k = self.identity.mm_per_count
-            s_mm, v_mm_s = msg.encoder_count * k, msg.velocity_counts_s * k
-            self.encoder_ring.append((t_ns, s_mm, v_mm_s, msg.inputs))
+        if isinstance(sample, EncoderReading):
+            t_ns, s_mm = sample.t_ns, sample.s_mm
+            self.encoder_ring.append((t_ns, s_mm, sample.velocity_mm_s, sample.inputs))
             self._last_position_mm, self._updated_ns = s_mm, t_ns
-            self._last_inputs = msg.inputs
-            for sink in self._sinks:
-                sink.on_encoder(t_ns, s_mm, v_mm_s, msg.inputs)
-        elif isinstance(msg, HeadSample):
-            pan, tilt = msg.pan_urad / URAD_PER_RAD, msg.tilt_urad / URAD_PER_RAD
-            self._head_rad = (pan, tilt)
-            for sink in self._sinks:
-                sink.on_head(t_ns, pan, tilt)
-        elif isinstance(msg, RefMark):
-            for sink in self._sinks:
-                sink.on_mark(t_ns, msg.encoder_count * self.identity.mm_per_count)
-        else:
-            for sink in self._sinks:
-                sink.on_range(t_ns, msg.distance_um / UM_PER_MM, msg.quality)
+            self._last_inputs = sample.inputs
+        elif isinstance(sample, HeadReading):
+            self._head_rad = (sample.pan_rad, sample.tilt_rad)
+        for sink in self._sinks:
+            sample.to(sink)
 
 
 def _um(mm: float) -> int:

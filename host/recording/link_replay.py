@@ -4,9 +4,9 @@ The live session stamps a CLOCK_SYNC probe and its reply with the transport's st
 just before the write, and as the chunk arrived), which are the times the transport tap records.
 Fed in recorded order, this class decodes both directions, pairs every reply with its probe,
 fits the controller clock with the same `ClockSync` estimator on the same numbers and converts
-every sample to host time and units as `host.link.Controller` does: the live sample times come
-back to the nanosecond, and a change to the clock sync (or to the drift filter downstream) can
-be judged on a real recording. It never sends anything.
+every sample to host time and units with the live controller's `host.link.samples.reading`: the
+live sample times come back to the nanosecond, and a change to the clock sync (or to the drift
+filter downstream) can be judged on a real recording. It never sends anything.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from host.link.clocksync import ClockSync
-from host.link.controller import UM_PER_MM, URAD_PER_RAD, SampleSink
+from host.link.samples import EncoderReading, SampleMessage, SampleSink, reading
 from host.link.snapshot import Identity
 from protocol import FrameDecoder, Packet
 from protocol.messages import ClockSync as ClockSyncMsg
@@ -126,20 +126,13 @@ class LinkReplay:
             self.stats.controller_resets += 1
         self.identity = Identity.from_message(msg)
 
-    def _on_sample(self, msg: EncoderSample | HeadSample | RangeSample | RefMark) -> None:
+    def _on_sample(self, msg: SampleMessage) -> None:
         """Host time and units, then the sink (the same conversion as the live controller)."""
-        if self.identity is None or not self.clock.ready:
+        sample = reading(msg, self.clock, self.identity)
+        if sample is None:
             self.stats.unsynced += 1
             return
         self.stats.samples += 1
-        t_ns = self.clock.mcu_to_host_ns(msg.mcu_time_us)
-        k = self.identity.mm_per_count
-        if isinstance(msg, EncoderSample):
-            self.encoder_times_ns.append(t_ns)
-            self.sink.on_encoder(t_ns, msg.encoder_count * k, msg.velocity_counts_s * k, msg.inputs)
-        elif isinstance(msg, HeadSample):
-            self.sink.on_head(t_ns, msg.pan_urad / URAD_PER_RAD, msg.tilt_urad / URAD_PER_RAD)
-        elif isinstance(msg, RefMark):
-            self.sink.on_mark(t_ns, msg.encoder_count * k)
-        else:
-            self.sink.on_range(t_ns, msg.distance_um / UM_PER_MM, msg.quality)
+        if isinstance(sample, EncoderReading):
+            self.encoder_times_ns.append(sample.t_ns)
+        sample.to(self.sink)

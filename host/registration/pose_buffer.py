@@ -2,7 +2,10 @@
 
 Samples are stamped in host monotonic nanoseconds. A lookup interpolates between the two samples
 around the query time; past the newest sample it extrapolates at most `horizon_ns`, and before
-the oldest retained sample it refuses. Results say ok / stale / empty and never carry a guess.
+the oldest retained sample it refuses. A sample pushed with `after_reset` starts a new segment
+(the encoder's zero was reset between it and the one before): no lookup bridges two segments,
+since a value between them is a position the trolley never had. Results say ok / stale / empty
+and never carry a guess.
 
 Joint samples (track s, head pan/tilt) are interpolated linearly in joint space, which is exact
 for the kinematic chain; `TransformBuffer` holds whole poses and interpolates them as ROS tf2
@@ -13,6 +16,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
@@ -35,7 +39,7 @@ class LookupStatus(Enum):
     """Outcome of a buffer lookup."""
 
     OK = "ok"
-    STALE = "stale"  # before the oldest sample, past the horizon, or across a gap
+    STALE = "stale"  # before the oldest sample, past the horizon, across a gap or a reset
     EMPTY = "empty"
     OFF_TRACK = "off_track"  # the trolley is outside the surveyed open track: no geometry there
 
@@ -75,6 +79,7 @@ class SampleBuffer:
         self._start = 0
         self._count = 0
         self.rejected = 0  # samples dropped for going back in time
+        self._resets: deque[int] = deque()  # times of retained samples that start a segment
         # The link pushes on the event loop while the frame loop looks up in a worker thread: a
         # lookup must never see a half-advanced ring (times out of order, a wrong bracket).
         self._lock = threading.Lock()
@@ -82,16 +87,22 @@ class SampleBuffer:
     def __len__(self) -> int:
         return self._count
 
-    def push(self, t_ns: int, values: npt.ArrayLike) -> bool:
-        """Append a sample; returns False (and counts it) if it is not newer than the last."""
-        with self._lock:
-            return self._push(t_ns, values)
+    def push(self, t_ns: int, values: npt.ArrayLike, after_reset: bool = False) -> bool:
+        """Append a sample; returns False (and counts it) if it is not newer than the last.
 
-    def _push(self, t_ns: int, values: npt.ArrayLike) -> bool:
+        `after_reset`: the values' zero changed since the previous sample (a homing latched the
+        encoder), so nothing is interpolated or extrapolated between the two.
+        """
+        with self._lock:
+            return self._push(t_ns, values, after_reset)
+
+    def _push(self, t_ns: int, values: npt.ArrayLike, after_reset: bool) -> bool:
         """push() under the lock."""
         if self._count and t_ns <= self._t[self._start + self._count - 1]:
             self.rejected += 1
             return False
+        if after_reset and self._count:
+            self._resets.append(t_ns)
         i = (self._start + self._count) % self.capacity
         self._t[i] = self._t[i + self.capacity] = t_ns
         self._v[i] = self._v[i + self.capacity] = values
@@ -99,12 +110,16 @@ class SampleBuffer:
             self._count += 1
         else:
             self._start = (self._start + 1) % self.capacity
+        oldest = self._t[self._start]
+        while self._resets and self._resets[0] <= oldest:  # nothing retained before it to split
+            self._resets.popleft()
         return True
 
     def clear(self) -> None:
         """Forget all samples (e.g. after a re-home or a clock resync)."""
         with self._lock:
             self._start = self._count = 0
+            self._resets.clear()
 
     def revise(self, t_from_ns: int, values_at: Callable[[Int64Array], npt.ArrayLike]) -> int:
         """Rewrite the samples stamped at or after t_from_ns with values_at(their times).
@@ -151,7 +166,7 @@ class SampleBuffer:
         if i == len(t):
             return self._extrapolate(t, v, t_ns)
         t0, t1 = int(t[i - 1]), int(t[i])
-        if t1 - t0 > self.max_gap_ns:
+        if t1 - t0 > self.max_gap_ns or t1 in self._resets:
             return Lookup(LookupStatus.STALE, t_ns)
         return Lookup(LookupStatus.OK, t_ns, self._blend(v[i - 1], v[i], (t_ns - t0) / (t1 - t0)))
 
@@ -160,7 +175,9 @@ class SampleBuffer:
         ahead = t_ns - int(t[-1])
         if ahead > self.horizon_ns:
             return Lookup(LookupStatus.STALE, t_ns, extrapolated_ns=ahead)
-        if ahead == 0 or len(t) < 2 or int(t[-1] - t[-2]) > self.max_gap_ns:
+        # One sample of its segment, or after a gap: no velocity to carry it along.
+        alone = len(t) < 2 or int(t[-1]) in self._resets
+        if ahead == 0 or alone or int(t[-1] - t[-2]) > self.max_gap_ns:
             return Lookup(LookupStatus.OK, t_ns, v[-1].copy(), ahead)
         f = 1.0 + ahead / int(t[-1] - t[-2])
         return Lookup(LookupStatus.OK, t_ns, self._blend(v[-2], v[-1], f), ahead)

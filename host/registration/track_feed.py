@@ -37,6 +37,12 @@ class PoseFeed:
     corrected again, so frames registered after it arrives see it. The filter works relative to
     home, where its prior holds (the offset is small right after homing), so it starts afresh
     at every homing and ignores references while the controller is not homed.
+
+    The controller's zero moves when the HOMED flag of its encoder samples changes (homing
+    latches the index: the count jumps in the sample that first says HOMED; a reboot restarts
+    it unhomed). Such a sample starts a new segment of the buffer, so no pose is made from the
+    two sides of the jump, and the uncorrected samples kept for references are dropped: a
+    reference stamped before the jump cannot be placed in the new coordinates.
     """
 
     encoder: SampleBuffer
@@ -54,6 +60,7 @@ class PoseFeed:
     ranges_seen: int = 0  # RANGE samples received
     ranges_unplaced: int = 0  # of those, not used: unhomed, or no encoder/head sample around
     homed: bool = False  # Inputs.HOMED of the latest encoder sample
+    zero_resets: int = 0  # HOMED flag changes seen: the buffer is never bridged across them
     _raw: SampleBuffer = dataclasses.field(
         default_factory=lambda: SampleBuffer(1, RAW_CAPACITY, RAW_HORIZON_NS)
     )
@@ -64,14 +71,18 @@ class PoseFeed:
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
         """One encoder sample (controller mm from home) → the buffer, corrected when we can."""
-        self._follow_homing(bool(inputs & Inputs.HOMED))
+        reset = self._follow_homing(bool(inputs & Inputs.HOMED))
+        if reset and self.raw_s_mm is not None:
+            self.zero_resets += 1
         self.raw_s_mm = self.home_s_mm + s_mm
         self.s_mm = self.raw_s_mm
         if self.chain is not None and self.homed:
             self.chain.predict(s_mm)
             self.s_mm = self.home_s_mm + self.chain.estimate(s_mm)[0]
+        if reset:
+            self._raw.clear()
         self._raw.push(t_host_ns, [s_mm])
-        self.encoder.push(t_host_ns, [self.s_mm])
+        self.encoder.push(t_host_ns, [self.s_mm], after_reset=reset)
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
         """One head sample."""
@@ -116,6 +127,7 @@ class PoseFeed:
             "raw_s_mm": _rounded(self.raw_s_mm),
             "marks_seen": self.marks_seen,
             "homed": self.homed,
+            "zero_resets": self.zero_resets,
         }
         if self.chain is not None:
             rel_mm = 0.0 if self.raw_s_mm is None else self.raw_s_mm - self.home_s_mm
@@ -143,11 +155,14 @@ class PoseFeed:
         self._raw.clear()
         self._restart_filter()
 
-    def _follow_homing(self, homed: bool) -> None:
-        """A new homing re-references the encoder: what the filter learned before is void."""
-        if homed and not self.homed:
+    def _follow_homing(self, homed: bool) -> bool:
+        """Whether the encoder's zero may have moved; a new homing voids what the filter learned."""
+        if homed == self.homed:
+            return False
+        if homed:
             self._restart_filter()
         self.homed = homed
+        return True
 
     def _reference(
         self, t_ns: int, enc_rel_mm: float, true_rel_mm: float, sigma_mm: float | None = None

@@ -29,7 +29,9 @@ from host.service.replay_registration import run as replay_run
 from tests.service.test_daemon import connect
 from tests.service.test_daemon_hil import start_sim, wait_until_at
 
-RIG = "[track.home]\nvalue_mm = 150.0\n[track.marks]\ns_mm = [250.0, 400.0]\n[camera]\nfps = 20.0\n"
+RIG = (
+    "[track.home]\nvalue_mm = 150.0\n[track.marks]\ns_mm = [250.0, 400.0]\n[camera]\nfps = {fps}\n"
+)
 CONFIG = """
 [link]
 kind = "serial"
@@ -50,6 +52,7 @@ ready_grace_s = 30.0
 status_interval_s = 0.5
 """
 HOME_SPEED_UM_S = 150_000
+FPS = 20.0  # poses published per second without a camera
 # The session stamps its clock probes with the transport's stamps, which the tap records: the
 # replayed clock is the live one exactly, and the poses agree to the replay's printed rounding.
 POSE_TOLERANCE_MM = 1e-5
@@ -73,11 +76,11 @@ async def wait_recording_state(client: ControlClient, state: str) -> dict[str, A
         await asyncio.sleep(0.1)
 
 
-async def start_daemon(tmp_path: Path) -> asyncio.subprocess.Process:
-    """The daemon on the emulator's pty, recording into tmp/disk/rec."""
+async def start_daemon(tmp_path: Path, fps: float = FPS) -> asyncio.subprocess.Process:
+    """The daemon on the emulator's pty, recording into tmp/rec, publishing fps poses a second."""
     config = tmp_path / "orbitar.toml"
     config.write_text(CONFIG.format(dir=tmp_path, rec="rec"))
-    (tmp_path / "rig.toml").write_text(RIG)
+    (tmp_path / "rig.toml").write_text(RIG.format(fps=fps))  # the rate is the rig file's
     env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
     env.pop("ORBITAR_FAKE_CONTROLLER", None)
     env.pop("NOTIFY_SOCKET", None)
@@ -102,6 +105,18 @@ async def drive_and_listen(client: ControlClient) -> list[dict[str, Any]]:
         if event["topic"] == "pose":
             poses.append(event["data"])
     return poses
+
+
+async def end_processes(
+    daemon: asyncio.subprocess.Process, sim: asyncio.subprocess.Process
+) -> None:
+    """Make sure the daemon and the emulator of a test are gone."""
+    if daemon.returncode is None:
+        daemon.kill()
+        await daemon.wait()
+    if sim.returncode is None:
+        sim.send_signal(signal.SIGTERM)
+    await asyncio.wait_for(sim.communicate(), 10.0)
 
 
 def replay(rec: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
@@ -130,7 +145,7 @@ async def test_replay_from_raw_bytes_gives_the_live_poses(
             (tmp_path / "disk").write_text("a plain file where a directory should be")
             config = tmp_path / "orbitar.toml"
             config.write_text(CONFIG.format(dir=tmp_path, rec="disk/rec"))
-            (tmp_path / "rig.toml").write_text(RIG)
+            (tmp_path / "rig.toml").write_text(RIG.format(fps=FPS))
             daemon.send_signal(signal.SIGHUP)
             blocked = await wait_recording_state(client, "retrying")
             assert "ENOTDIR" in blocked["last_error"] or "EEXIST" in blocked["last_error"]
@@ -143,12 +158,7 @@ async def test_replay_from_raw_bytes_gives_the_live_poses(
         daemon.send_signal(signal.SIGTERM)
         assert await asyncio.wait_for(daemon.wait(), 5.0) == 0
     finally:
-        if daemon.returncode is None:
-            daemon.kill()
-            await daemon.wait()
-        if sim.returncode is None:
-            sim.send_signal(signal.SIGTERM)
-        await asyncio.wait_for(sim.communicate(), 10.0)
+        await end_processes(daemon, sim)
     header = next(iter(RecordingReader([tmp_path / "rec"], strict=True))).data
     assert header["version"] == 2
     assert "[recording]" in header["config_toml"]

@@ -97,6 +97,7 @@ def test_without_marks_the_feed_only_adds_home() -> None:
         "raw_s_mm": 350.5,
         "marks_seen": 1,
         "homed": False,
+        "zero_resets": 0,
     }
 
 
