@@ -12,7 +12,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from host.config import loads_config
 from host.control.api import PoseSample
 from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, LookupStatus, SampleBuffer
@@ -20,6 +19,7 @@ from host.registration.track_feed import PoseFeed
 from host.service.wiring import STREAM_RATES_HZ, PosePublisher, build_pose_source
 from protocol.enums import Inputs
 from tests.fusion.test_range_fix import AHEAD, HALL, RIG, _reading
+from tests.rig.helpers import rig_config
 
 MS = 1_000_000
 HOME_S_MM = 150.0
@@ -86,7 +86,7 @@ class _Ctl:
 
 
 def test_no_pose_is_published_across_the_homing_latch() -> None:
-    config = loads_config(f"[track]\nhome_s_mm = {HOME_S_MM}\nreference_marks_mm = [250.0]\n")
+    config = rig_config(f"[track.home]\nvalue_mm = {HOME_S_MM}\n[track.marks]\ns_mm = [250.0]\n")
     poses, feed = build_pose_source(config, STREAM_RATES_HZ["serial"])
     got: list[PoseSample] = []
     publisher = PosePublisher(poses, _Ctl(), got.append, 30.0)  # type: ignore[arg-type]
