@@ -67,6 +67,11 @@ COMMANDS: dict[str, Command] = {
     "conformance": Command(
         "host.conformance.run", "add_parser", "check a controller against PROTOCOL.md over its wire"
     ),
+    "survey": Command(
+        "host.commissioning.cli",
+        "add_parsers",
+        "commissioning: survey with the rangefinder",
+    ),
 }
 
 

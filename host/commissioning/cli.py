@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import sys
 from typing import Any, TextIO
 
@@ -48,6 +49,27 @@ def add_parsers(subparsers: Any) -> None:
     _pose_args(check)
     check.add_argument("--max-rms", type=float, help="pass threshold, px (default 1.0)")
     check.set_defaults(handler=lambda a: run_posed(a, "calibrate_check"))
+    lat = _common(sub.add_parser("latency", help="frame stamp to exposure offset, from passes"))
+    _board_args(lat, centre=False)
+    _pose_args(lat)
+    lat.add_argument("--station", type=float, required=True, help="arc length facing the board, mm")
+    lat.add_argument("--span", type=float, default=200.0, help="pass length, mm (default 200)")
+    lat.add_argument("--passes", type=int, default=6, help="passes back and forth (default 6)")
+    lat.set_defaults(handler=lambda a: run_posed(a, "calibrate_latency"))
+    survey = subparsers.add_parser("survey", help="commissioning: survey with the rangefinder")
+    ssub = survey.add_subparsers(dest="survey_command", required=True)
+    wp = _common(ssub.add_parser("workpiece", help="the workpiece frame from its feature points"))
+    aims_help = "JSON [[s_mm, pan_rad, tilt_rad], ...]: where the beam meets each feature"
+    wp.add_argument("--aims", required=True, metavar="FILE", help=aims_help)
+    model_help = "JSON [[x, y, z], ...]: the same features in the model (least squares)"
+    wp.add_argument("--model-points", metavar="FILE", help=model_help)
+    wp.add_argument("--samples", type=int, default=10, help="readings averaged per point")
+    wp.set_defaults(handler=run_survey_workpiece)
+    home = _common(ssub.add_parser("home", help="the controller's zero on the track, from a wall"))
+    home.add_argument("pan_deg", type=float, help="head pan putting the beam on an end wall")
+    home.add_argument("tilt_deg", type=float, help="head tilt")
+    home.add_argument("--samples", type=int, default=20, help="readings averaged")
+    home.set_defaults(handler=run_survey_home)
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -126,14 +148,44 @@ def run_posed(args: argparse.Namespace, op: str) -> int:
         return _fail(f"--board-pose {args.board_pose}: {exc}")
     req["board_sigma_mm"] = args.board_sigma_mm
     req["board_sigma_rad"] = args.board_sigma_mrad / 1000.0
-    if args.stations:
+    if args.stations and op != "calibrate_latency":
         req["stations_mm"] = list(args.stations)
     if args.speed is not None:
         req["speed_mm_s"] = args.speed
+    if op == "calibrate_latency":
+        req.update(station_mm=args.station, span_mm=args.span, passes=args.passes)
     if getattr(args, "max_rms", None) is not None:
         req["max_rms_px"] = args.max_rms
     req["write"] = not args.no_write
     return follow(args, op, req)
+
+
+def run_survey_workpiece(args: argparse.Namespace) -> int:
+    """`orbitar survey workpiece --aims FILE [--model-points FILE]`."""
+    try:
+        req: dict[str, Any] = {"aims": _json(args.aims), "samples": args.samples}
+        if args.model_points:
+            req["model_points_mm"] = _json(args.model_points)
+    except (OSError, ValueError) as exc:
+        return _fail(str(exc))
+    req["write"] = not args.no_write
+    return follow(args, "survey_workpiece", req)
+
+
+def run_survey_home(args: argparse.Namespace) -> int:
+    """`orbitar survey home PAN_DEG TILT_DEG` (degrees here, radians on the socket)."""
+    req = {"pan_rad": math.radians(args.pan_deg), "tilt_rad": math.radians(args.tilt_deg)}
+    req.update(samples=args.samples, write=not args.no_write)
+    return follow(args, "survey_home", req)
+
+
+def _json(path: str) -> Any:
+    """A JSON file's content (ValueError naming the file)."""
+    try:
+        with open(path, encoding="utf-8") as f:
+            return json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not JSON: {exc}") from exc
 
 
 def follow(args: argparse.Namespace, op: str, req: dict[str, Any]) -> int:

@@ -10,6 +10,7 @@ writes nothing. Reports go to `report_root`.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,14 +18,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from host.commissioning.frames import FrameTap
+from host.commissioning.frames import FrameTap, RangeTap
 from host.commissioning.jobs import JobBoard
 from host.experiments.budget import BudgetInputs, inputs_from_rig, overlay_sigma
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import load_model, manipulator_wireframe
+from host.geometry.rangefinder import RangeScene
 from host.geometry.transforms import FloatArray
-from host.rig import RigSpec, build_camera, build_kinematics, load_rig
+from host.rig import RigSpec, build_camera, build_kinematics, build_scene, load_rig
 from host.rig.store import current_rig
 
 if TYPE_CHECKING:
@@ -34,6 +36,7 @@ log = logging.getLogger(__name__)
 
 DEFAULT_REPORT_ROOT = Path("orbitar-commissioning")
 BUILTIN_MODEL = "builtin:manipulator"
+BUDGET_CACHE_S = 2.0
 REPORT_DIR = "commissioning"  # beside the rig file
 
 
@@ -43,6 +46,10 @@ def _no_frames() -> FrameTap | None:
 
 def _default_kinematics() -> tuple[Rig, CameraModel]:
     return Rig(), CameraModel()
+
+
+def _no_scene() -> RangeScene | None:
+    return None
 
 
 def _no_home() -> float:
@@ -71,14 +78,39 @@ class CommissioningEnv:
     camera_cov: Callable[[], FloatArray | None] = _no_camera_cov
     # the error budget's inputs and the model points it is evaluated on (None: no budget)
     budget: Callable[[], tuple[BudgetInputs, FloatArray] | None] = _no_budget
+    ranges: Callable[[], RangeTap | None] | None = None  # the controller's rangefinder readings
+    scene: Callable[[], RangeScene | None] = _no_scene  # the rig file's surveyed surfaces
+    # the daemon's own pose source: frame stamp → (s_mm, pan, tilt), None when it has none
+    pose_at: Callable[[int], tuple[float, float, float] | None] | None = None
+    latency_ms: Callable[[], float] = _no_home  # the exposure latency the pose source applies
     # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
     after_write: Callable[[], Awaitable[Any]] | None = None
 
+    _budget_cache: tuple[tuple[float, float, float], float, float | None] | None = field(
+        default=None, init=False, repr=False
+    )
+
     def overlay_sigma_px(self, snapshot: Mapping[str, Any]) -> float | None:
-        """Predicted overlay σ at the controller's current pose; None when unknown (logged)."""
+        """Predicted overlay σ at the controller's pose (None when unknown, logged).
+
+        It costs some tens of milliseconds on the daemon's loop, so a result is reused while
+        the pose stays within 1 mm and 1 mrad for up to BUDGET_CACHE_S.
+        """
         pos, head = snapshot.get("position_mm"), snapshot.get("head_rad")
         if pos is None or not head:
             return None
+        key = (round(float(pos)), round(float(head[0]) * 1e3), round(float(head[1]) * 1e3))
+        now = time.monotonic()
+        cached = self._budget_cache
+        if cached is not None and cached[0] == key and now - cached[1] < BUDGET_CACHE_S:
+            return cached[2]
+        value = self._overlay_sigma(float(pos), float(head[0]), float(head[1]))
+        self._budget_cache = (key, now, value)
+        return value
+
+    def _overlay_sigma(self, pos: float, pan: float, tilt: float) -> float | None:
+        """The budget at one pose."""
+        head = (pan, tilt)
         try:
             got = self.budget()
             if got is None:
@@ -120,8 +152,14 @@ class CommissioningEnv:
             wire = manipulator_wireframe() if model == BUILTIN_MODEL else load_model(model)
             return inputs_from_rig(spec), wire.vertices
 
+        def latency() -> float:
+            return float(load().camera.latency.value)
+
+        def scene() -> RangeScene | None:
+            return build_scene(load())
+
         return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov,
-                   budget=budget)  # fmt: skip
+                   budget=budget, latency_ms=latency, scene=scene)  # fmt: skip
 
     @classmethod
     def for_rig_file(

@@ -66,3 +66,54 @@ async def wait_frame(tap: FrameTap, after_ns: int, timeout_s: float) -> Frame:
             got = "no frame at all" if frame is None else "no new frame"
             raise NoFramesError(f"camera: {got} within {timeout_s:.1f} s")
         await asyncio.sleep(POLL_S)
+
+
+class RangeTap:
+    """A controller sample sink keeping the newest rangefinder readings (thread-safe)."""
+
+    def __init__(self, keep: int = 256) -> None:
+        self._lock = threading.Lock()
+        self._keep = keep
+        self._readings: list[tuple[int, float, int]] = []
+
+    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
+        """Not needed here."""
+
+    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
+        """Not needed here."""
+
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """Not needed here."""
+
+    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """Keep a reading."""
+        with self._lock:
+            self._readings.append((t_host_ns, distance_mm, quality))
+            del self._readings[: -self._keep]
+
+    def since(self, t_ns: int) -> list[tuple[int, float, int]]:
+        """Readings taken after t_ns, oldest first."""
+        with self._lock:
+            return [r for r in self._readings if r[0] > t_ns]
+
+
+async def wait_ranges(tap: RangeTap, after_ns: int, count: int, timeout_s: float) -> list[float]:
+    """`count` valid (quality > 0) distances read after `after_ns`; NoFramesError on timeout."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        got = [d for _, d, q in tap.since(after_ns) if q > 0]
+        if len(got) >= count:
+            return got[:count]
+        if time.monotonic() >= deadline:
+            raise NoFramesError(
+                f"rangefinder: {len(got)} of {count} readings within {timeout_s:.1f} s"
+            )
+        await asyncio.sleep(POLL_S)
+
+
+def attach_range_tap(controller: object) -> RangeTap:
+    """A RangeTap on a controller's samples, kept as its `range_tap` for the commissioning."""
+    tap = RangeTap()
+    controller.add_sink(tap)  # type: ignore[attr-defined]
+    setattr(controller, "range_tap", tap)  # noqa: B010
+    return tap

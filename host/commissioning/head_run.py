@@ -14,14 +14,16 @@ compared with where they are found; the RMS and the worst view are judged.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from host.calibration.handeye import HandEyeResult, HandEyeView, calibrate_handeye
+from host.calibration.handeye import HandEyeResult, HandEyeView, adjoint, calibrate_handeye
 from host.commissioning.intrinsics_run import CapturedView
 from host.commissioning.report import Page, per_view_figure, residual_figure, text_table
+from host.experiments.budget import BudgetInputs, overlay_sigma
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.transforms import FloatArray, R_to_rotvec
@@ -217,6 +219,8 @@ class CheckOutcome:
     residuals_px: list[FloatArray]
     rms_px: float
     max_px: float
+    predicted_px: float | None = None  # the error budget's σ for these views, detection noise in
+    predicted_per_view_px: list[float] | None = None
 
     def summary(self) -> dict[str, Any]:
         """Plain values."""
@@ -229,6 +233,8 @@ class CheckOutcome:
             "rms_px": self.rms_px, "max_px": self.max_px,
             "per_view_rms_px": [round(e, 4) for e in self.per_view_rms_px],
             "table": text_table(["view", "RMS px"], rows),
+            "predicted_sigma_px": self.predicted_px,
+            "predicted_per_view_px": self.predicted_per_view_px,
         }  # fmt: skip
 
     def _used(self) -> list[CapturedView]:
@@ -263,6 +269,41 @@ def check_views(
         f"(worst corner {worst:.2f} px)"
     )
     return CheckOutcome(ok, [why], views, per_view, res, rms, worst)
+
+
+def with_prediction(
+    outcome: CheckOutcome, inputs: BudgetInputs, T_w_b: FloatArray, cov_b: FloatArray
+) -> CheckOutcome:
+    """The error budget's prediction for the same views, beside the measured RMS.
+
+    The check sees the board the head calibration placed the track with: the survey's error is
+    in both and cancels, so the track's covariance here is the rig file's less the board
+    survey's share (the hand-eye fit's own), and the board's pose counts as exact.
+    """
+    T_b_k = np.linalg.inv(T_w_b) @ inputs.rig.track.T_w_track
+    Ad = adjoint(np.asarray(np.linalg.inv(T_b_k), dtype=np.float64))
+    rel = inputs.track_cov - Ad @ cov_b @ Ad.T
+    w, V = np.linalg.eigh((rel + rel.T) / 2)
+    rel = (V * np.clip(w, 0.0, None)) @ V.T  # the part left once the shared survey is removed
+    board = dataclasses.replace(
+        inputs, T_w_p=T_w_b, workpiece_cov=np.zeros((6, 6)), track_cov=rel,
+        sigma_head_rad=(0.0, 0.0), speed_mm_s=0.0,
+    )  # fmt: skip
+    per_view, sq, n = [], 0.0, 0
+    for v in outcome._used():
+        det = v.detection
+        assert det is not None
+        b = overlay_sigma(board, v.s_mm, v.head_rad[0], v.head_rad[1], det.object_points)
+        sig = float(np.hypot(b.sigma_px, inputs.pixel_noise_px))
+        per_view.append(round(sig, 4))
+        sq, n = sq + sig * sig * det.count, n + det.count
+    if not n:
+        return outcome
+    pred = float(np.sqrt(sq / n))
+    reasons = [*outcome.reasons, f"predicted by the error budget: {pred:.3f} px"]
+    return dataclasses.replace(
+        outcome, reasons=reasons, predicted_px=pred, predicted_per_view_px=per_view
+    )
 
 
 def check_page(outcome: CheckOutcome, max_rms_px: float) -> Page:

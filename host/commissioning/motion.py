@@ -65,12 +65,12 @@ class RigIO:
 
     async def go(self, view: ViewTarget) -> None:
         """Trolley to the view's station (if not there), head to its angles, then settle."""
+        target = view.s_mm - self.home_s_mm  # plans speak arc length, the controller its zero
         position = self.snapshot().get("position_mm")
-        if position is None or abs(float(position) - view.s_mm) > POSITION_TOL_MM:
-            await self.controller.move_to(view.s_mm, self.speed_mm_s)
-            await self._until(
-                lambda s: _at(s, view.s_mm), MOVE_TIMEOUT_S, f"trolley to {view.s_mm:.0f} mm"
-            )
+        if position is None or abs(float(position) - target) > POSITION_TOL_MM:
+            await self.controller.move_to(target, self.speed_mm_s)
+            where = f"trolley to s = {view.s_mm:.0f} mm"
+            await self._until(lambda s: _at(s, target), MOVE_TIMEOUT_S, where)
         self.snapshot()
         await self.controller.set_head(view.pan_rad, view.tilt_rad)
         await self._until(lambda s: _head_at(s, view), HEAD_TIMEOUT_S, "head to its angles")

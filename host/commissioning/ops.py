@@ -18,13 +18,14 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import head_run, intrinsics_run
+from host.commissioning import head_run, home_run, intrinsics_run, latency_run, survey_run
 from host.commissioning.env import CommissioningEnv
+from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
-from host.commissioning.plan import IMAGE_TARGETS, board_plan
+from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
 from host.commissioning.report import Page, run_dir, write_page
-from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError
+from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
 from host.geometry.transforms import FloatArray
 from host.rig import update_rig
 
@@ -200,8 +201,9 @@ async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
 async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Start the acceptance test: predicted against measured corners from new poses."""
-    T_w_b, _ = board_pose(args)
+    T_w_b, cov_b = board_pose(args)
     spec = board_spec(args)
+    env = env_of(ctx)
     limit = args.get("max_rms_px", 1.0)
     if not _finite(limit) or not 0.0 < limit <= 10.0:
         raise OpError("bad_args", f"max_rms_px = {limit!r}: expected a number in (0, 10]")
@@ -210,11 +212,195 @@ async def op_calibrate_check(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         views: list[Any], rig: Any, camera: Any
     ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
         out = head_run.check_views(views, rig, camera, T_w_b, float(limit))
+        budget = env.budget()
+        if budget is not None:
+            out = head_run.with_prediction(out, budget[0], T_w_b, cov_b)
         return out.summary(), head_run.check_page(out, float(limit)), {}
 
     return _start_capture_run(
         ctx, args, "check", (T_w_b @ np.append(spec.centre_mm, 1.0))[:3], finish
     )
+
+
+async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a latency run: board_pose, station_mm, span_mm, speed_mm_s, passes, write."""
+    env = env_of(ctx)
+    T_w_b, _ = board_pose(args)
+    spec = board_spec(args)
+    station = number(args, "station_mm", -MAX_ABS_MM, MAX_ABS_MM)
+    span = number({"span_mm": 200.0, **args}, "span_mm", 20.0, 5000.0)
+    speed = number({"speed_mm_s": 300.0, **args}, "speed_mm_s", 10.0, MAX_SPEED_MM_S)
+    passes = args.get("passes", 6)
+    if isinstance(passes, bool) or not isinstance(passes, int) or not 2 <= passes <= 40:
+        raise OpError("bad_args", f"passes = {passes!r}: expected an integer in [2, 40]")
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None or env.pose_at is None:
+        raise OpError("unavailable", "no camera frames or no pose source in this daemon")
+    controller, pose_at = ctx.controller, env.pose_at
+    limits = latency_run.LatencyThresholds()
+    centre = (T_w_b @ np.append(spec.centre_mm, 1.0))[:3]
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        tap = env.frames()
+        if tap is None:
+            raise AbortedError("the camera went away")
+        rig, camera = env.kinematics()
+        size = np.array([camera.width - 1.0, camera.height - 1.0])
+        angles = aim_at_pixel(rig, camera, station, centre, size / 2)
+        if angles is None:
+            raise AbortedError(f"the board cannot be aimed at from s = {station:.0f} mm")
+        view = ViewTarget(station, angles[0], angles[1], f"s={station:.0f}")
+        io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
+        det = BoardDetector(spec)
+        frames = await latency_run.capture_passes(
+            io, tap, pose_at, det, view, span, speed, passes, progress
+        )
+        progress["phase"] = "solving"
+        out = await asyncio.to_thread(
+            latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits
+        )
+        report = await asyncio.to_thread(
+            _write, env.report_root, "latency", latency_run.latency_page(out, limits)
+        )
+        written = None
+        if out.passed and bool(args.get("write", True)) and env.rig_path is not None:
+            progress["phase"] = "writing"
+            await asyncio.to_thread(
+                update_rig, env.rig_path, latency_run.latency_update(out), "calibrate latency"
+            )
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**out.summary(), "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("latency", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+def aims(args: Mapping[str, Any]) -> list[ViewTarget]:
+    """`aims`: [[s_mm, pan_rad, tilt_rad], ...], one per feature point (3-64)."""
+    v = args.get("aims")
+    why = f"aims = {v!r}: expected 3-{MAX_STATIONS} [s_mm, pan_rad, tilt_rad]"
+    if not isinstance(v, list) or not 3 <= len(v) <= MAX_STATIONS:
+        raise OpError("bad_args", why)
+    out = []
+    for i, a in enumerate(v):
+        if not isinstance(a, list | tuple) or len(a) != 3 or not all(_finite(x) for x in a):
+            raise OpError("bad_args", why)
+        out.append(ViewTarget(float(a[0]), float(a[1]), float(a[2]), f"P{i + 1}"))
+    return out
+
+
+async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a workpiece survey: aims, optional model_points_mm, samples, noise_mm, write."""
+    env = env_of(ctx)
+    targets = aims(args)
+    model = args.get("model_points_mm")
+    model_p = None
+    if model is not None:
+        model_p = np.array(model, dtype=np.float64) if isinstance(model, list) else np.zeros(0)
+        if model_p.shape != (len(targets), 3) or not np.isfinite(model_p).all():
+            raise OpError("bad_args", f"model_points_mm: expected {len(targets)} finite [x, y, z]")
+    samples = args.get("samples", 10)
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 200:
+        raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 200]")
+    noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
+    # where the calibrated rig puts the beam's origin (home and track surveys, ~1 mm)
+    rig_sigma = number({"rig_sigma_mm": 1.0, **args}, "rig_sigma_mm", 0.0, 100.0)
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    tap = env.ranges() if env.ranges is not None else None
+    if tap is None:
+        raise OpError("unavailable", "no rangefinder readings (the rig file lists no surfaces?)")
+    controller = ctx.controller
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        rig, _ = env.kinematics()
+        io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
+        points = await survey_run.measure(io, tap, rig, targets, samples, progress)
+        sigma = float(np.hypot(survey_run.point_sigma_mm(noise, samples), rig_sigma))
+        ok, reasons, fit = survey_run.judge(points, model_p, sigma)
+        result = survey_run.summary(ok, reasons, points, fit)
+        report = await asyncio.to_thread(
+            _write, env.report_root, "workpiece", survey_run.page(result)
+        )
+        written = None
+        if ok and fit is not None and bool(args.get("write", True)) and env.rig_path is not None:
+            update = survey_run.workpiece_update(fit, len(points))
+            await asyncio.to_thread(update_rig, env.rig_path, update, "survey workpiece")
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**result, "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("workpiece", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a home survey: pan_rad, tilt_rad aiming the beam at an end wall; samples."""
+    env = env_of(ctx)
+    pan = number(args, "pan_rad", *ctx.pan_limits_rad)
+    tilt = number(args, "tilt_rad", *ctx.tilt_limits_rad)
+    samples = args.get("samples", 20)
+    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 500:
+        raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 500]")
+    noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
+    wall = number({"wall_sigma_mm": 1.0, **args}, "wall_sigma_mm", 0.0, 100.0)
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    tap = env.ranges() if env.ranges is not None else None
+    scene = env.scene()
+    if tap is None or scene is None:
+        raise OpError(
+            "unavailable", "no rangefinder readings or no surveyed surfaces in the rig file"
+        )
+    controller = ctx.controller
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        rig, _ = env.kinematics()
+        io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
+        result = await home_run.survey_home(
+            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress
+        )
+        report = await asyncio.to_thread(
+            _write, env.report_root, "home", home_run.home_page(result)
+        )
+        written = None
+        if result["passed"] and bool(args.get("write", True)) and env.rig_path is not None:
+            await asyncio.to_thread(
+                update_rig, env.rig_path, home_run.home_update(result, samples), "survey home"
+            )
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**result, "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("home", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+class _NoCamera:
+    """The survey needs no frames: a source that never delivers one."""
+
+    def read(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
 
 
 def _write(root: Path, kind: str, page: Page) -> str:
@@ -254,11 +440,14 @@ def _finite(x: Any) -> bool:
     return not isinstance(x, bool) and isinstance(x, int | float) and math.isfinite(x)
 
 
-# op name → (handler, needs the operator role); merged into host.control.ops.OPS
-COMMISSIONING_OPS: dict[str, tuple[Handler, bool]] = {
-    "calibrate_intrinsics": (op_calibrate_intrinsics, True),
-    "calibrate_head": (op_calibrate_head, True),
-    "calibrate_check": (op_calibrate_check, True),
-    "commissioning_status": (op_commissioning_status, False),
-    "commissioning_cancel": (op_commissioning_cancel, True),
+# op name → (handler, the least role that may run it); merged into host.control.ops.OPS
+COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
+    "calibrate_intrinsics": (op_calibrate_intrinsics, Role.OPERATOR),
+    "calibrate_head": (op_calibrate_head, Role.OPERATOR),
+    "calibrate_check": (op_calibrate_check, Role.OPERATOR),
+    "calibrate_latency": (op_calibrate_latency, Role.OPERATOR),
+    "survey_workpiece": (op_survey_workpiece, Role.OPERATOR),
+    "survey_home": (op_survey_home, Role.OPERATOR),
+    "commissioning_status": (op_commissioning_status, Role.VIEWER),
+    "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }

@@ -281,16 +281,6 @@ OPS: dict[str, tuple[Handler, Role]] = {
     "param_persist": (op_param_persist, Role.OPERATOR),
 }
 
-# The commissioning runs (calibrate_*, survey_*): their own module, joined to the table here.
-from host.commissioning.ops import COMMISSIONING_OPS, cancel_runs  # noqa: E402
-
-OPS.update(
-    {
-        name: (handler, Role.OPERATOR if operator else Role.VIEWER)
-        for name, (handler, operator) in COMMISSIONING_OPS.items()
-    }
-)
-
 
 async def dispatch(ctx: OpContext, role: Role, op: Any, args: Any) -> dict[str, Any]:
     """Run one op for a caller of `role`: {"ok": true, "result"} or {"ok": false, "error"}."""
@@ -321,3 +311,9 @@ async def _run(ctx: OpContext, role: Role, op: Any, args: Any) -> Any:
     if not role.allows(least):
         raise OpError("forbidden", f"{op!r} needs the {least.value} role")
     return await handler(ctx, args)
+
+
+# The commissioning runs (calibrate_*, survey_*): their own module, joined to the table here.
+from host.commissioning.ops import COMMISSIONING_OPS, cancel_runs  # noqa: E402
+
+OPS.update(COMMISSIONING_OPS)

@@ -63,6 +63,9 @@ class BudgetInputs:
     sigma_head_rad: tuple[float, float] = (0.0, 0.0)  # pan, tilt noise
     sigma_clock_s: float = 0.0  # clock-sync error of a frame's stamp
     speed_mm_s: float = 0.0  # the trolley's speed (the clock error's lever)
+    # 2-D RMS noise of a *detected* image point (the intrinsics fit's residual): not part of
+    # the overlay's σ (the overlay is drawn, not detected), added when predicting a measurement
+    pixel_noise_px: float = 0.0
 
     def covariance(self) -> FloatArray:
         """The 31×31 input covariance (block-diagonal between sources)."""
@@ -200,9 +203,11 @@ def inputs_from_rig(spec: RigSpec, sigma_s_mm: float | None = None) -> BudgetInp
         np.array(intr.covariance) if intr.covariance is not None else np.diag(np.square(intr.sigma))
     )
     s_sig = spec.track.marks.sigma_mm if sigma_s_mm is None else sigma_s_mm
+    noise = intr.provenance.residual if intr.provenance.residual_unit == "px" else None
     return BudgetInputs(
         build_kinematics(spec), build_camera(spec), workpiece_pose(spec), cam_cov,
         spec.head.m_cr.cov(), spec.track.placement.cov(), spec.workpiece.frame.cov(), s_sig,
+        pixel_noise_px=float(noise or 0.0),
     )  # fmt: skip
 
 

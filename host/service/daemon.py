@@ -120,6 +120,10 @@ class Daemon:
         )
         if self.commissioning.after_write is None:  # a calibration's result takes effect now
             self.commissioning.after_write = self.reload
+        if self.commissioning.ranges is None:  # the link controller's rangefinder tap
+            self.commissioning.ranges = lambda: getattr(self.controller, "range_tap", None)
+        if self.commissioning.pose_at is None:  # the frames' poses, for the latency calibration
+            self.commissioning.pose_at = self._pose_at
         self.server = ControlServer(self._op_context(), config.control)
         self.station = attach_station(self) if config.ui.enabled else None
         self._stop = asyncio.Event()
@@ -411,6 +415,14 @@ class Daemon:
         )
         writer.open()
         self.recorder = writer
+
+    def _pose_at(self, t_ns: int) -> tuple[float, float, float] | None:
+        """(s, pan, tilt) the frame loop's pose source gives a frame stamped t_ns, if any."""
+        poses = getattr(self.frame_loop, "poses", None)  # CameraPoseLoop: (PoseSource, feed)
+        if not isinstance(poses, tuple) or not poses:
+            return None
+        pose = poses[0].pose_at(t_ns)
+        return (pose.s_mm, pose.pan_rad, pose.tilt_rad) if pose.ok else None
 
     def _op_context(self) -> OpContext:
         """What the control ops may see."""

@@ -17,6 +17,8 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from host.commissioning.frames import FrameTap as LatestFrameTap
+from host.commissioning.frames import attach_range_tap
 from host.config import Config
 from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
@@ -182,6 +184,7 @@ def controller_factory(
     )
     ctrl.add_sink(RecordingSink(record_tap))
     ctrl.add_stats(lambda: clock_stats(ctrl))
+    attach_range_tap(ctrl)  # the readings a workpiece or home survey averages
     log.info("controller link configured", extra={"kv": {"link": ctrl.transport.describe()}})
     return ctrl
 
@@ -428,14 +431,15 @@ class CameraPoseLoop:
         record_tap: RecordTap,
         poses: tuple[PoseSource, PoseFeed] | None = None,
     ) -> None:
-        self.source = source
+        self.frame_tap = LatestFrameTap(source)  # the newest frame, for calibration runs
+        self.source: FrameSource = self.frame_tap
         self.poses = poses  # what apply_rig swaps a changed rig file into
         self.rig: RigSpec | None = None  # the rig file's content the frames are registered with
         self.controller = controller
         self.sink = sink
         self.record_tap = record_tap
         self.unregistered = 0  # frames whose exposure had no usable pose
-        self.loop: FrameLoop[Registration] = FrameLoop(source, registrar, [self._publish])
+        self.loop: FrameLoop[Registration] = FrameLoop(self.source, registrar, [self._publish])
         self._meter = RateMeter()
 
     @property

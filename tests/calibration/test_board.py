@@ -92,7 +92,7 @@ def true_lens(rng: np.random.Generator) -> CameraModel:
     )  # fmt: skip
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_intrinsics_with_skew_recovered_within_three_reported_sigma(seed: int) -> None:
     rng = np.random.default_rng(seed)
     truth = true_lens(rng)

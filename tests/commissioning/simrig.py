@@ -16,14 +16,15 @@ import numpy as np
 from hil_sim.camera import FrameClock, PlacedBoard, SyntheticCamera
 from host.calibration.board import BoardSpec
 from host.commissioning.env import CommissioningEnv
-from host.commissioning.frames import FrameTap
+from host.commissioning.frames import FrameTap, RangeTap
 from host.config import Config, ControlConfig
 from host.control.client import ControlClient
 from host.frames.sources import Frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
+from host.geometry.rangefinder import RangeScene, hall_walls
 from host.geometry.transforms import euler_zyx, make_T, rot_x
-from host.rig import RigSpec, save_rig
+from host.rig import HallSpec, RigSpec, Scalar, SurfaceSpec, save_rig
 from host.service.daemon import Daemon
 from tests.fakes import MemoryController as FakeController
 
@@ -72,7 +73,7 @@ class SimBoardLoop:
     board: PlacedBoard
     clock: FrameClock
     blur_mm: float = 0.0  # smear every frame by this much camera motion (a shaking mount)
-    home_s_mm: float = 150.0  # true arc length of the controller's zero (the rig file: 150 ± 1)
+    home_s_mm: float = 0.0  # true arc length of the controller's zero
     frame_tap: FrameTap = field(init=False)
     frames: int = 0
 
@@ -111,6 +112,81 @@ class SimBoardLoop:
         return self.camera.render_board(T_c_b, self.board.board, end).image
 
 
+class PoseRecorder:
+    """The host's view of the fake trolley over time (an encoder buffer at 500 Hz)."""
+
+    def __init__(self, controller: FakeController, home_s_mm: float) -> None:
+        self.controller, self.home_s_mm = controller, home_s_mm
+        self.t: list[int] = []
+        self.rows: list[tuple[float, float, float]] = []
+
+    async def run(self) -> None:
+        while True:
+            pan, tilt = self.controller.head_rad
+            self.t.append(time.monotonic_ns())
+            self.rows.append((self.controller.position_mm + self.home_s_mm, pan, tilt))
+            del self.t[:-5000], self.rows[:-5000]
+            await asyncio.sleep(0.002)
+
+    def pose_at(self, t_ns: int) -> tuple[float, float, float] | None:
+        """Linear interpolation between the recorded samples (None outside them)."""
+        if len(self.t) < 2 or not self.t[0] <= t_ns <= self.t[-1]:
+            return None
+        i = max(int(np.searchsorted(self.t, t_ns)), 1)
+        f = (t_ns - self.t[i - 1]) / max(self.t[i] - self.t[i - 1], 1)
+        a, b = np.array(self.rows[i - 1]), np.array(self.rows[i])
+        s, pan, tilt = a + f * (b - a)
+        return float(s), float(pan), float(tilt)
+
+
+MODEL_FEATURES_P = np.array(
+    [[0, 0, 0], [400, 0, 200], [0, 300, 600], [-200, 250, 900], [0, 0, 1200]], dtype=np.float64
+)
+
+
+FEATURE_RADIUS_MM = 30.0
+HOME_MM = 150.0  # the home switch's arc length in the rig file (surveyed, σ 1 mm)
+HALL_X_MM, HALL_Y_MM = (-6000.0, 6000.0), (-4500.0, 4500.0)
+# the hall as built: its survey (the rig file) is within a millimetre of it
+TRUE_HALL = RangeScene(hall_walls((HALL_X_MM[0] + 0.4, HALL_X_MM[1] - 0.3), HALL_Y_MM))
+
+
+def surveyed_hall() -> HallSpec:
+    """The rig file's survey of the hall's walls."""
+    return HallSpec(
+        tuple(SurfaceSpec(w.name, w.point_w, w.normal_w) for w in hall_walls(HALL_X_MM, HALL_Y_MM))
+    )
+
+
+class FakeRangefinder:
+    """Readings at 100 Hz along the true beam to the feature it points at (1 mm noise)."""
+
+    def __init__(self, loop: SimBoardLoop, T_w_p: np.ndarray, tap: RangeTap, seed: int) -> None:
+        self.loop, self.tap = loop, tap
+        self.points_w = MODEL_FEATURES_P @ T_w_p[:3, :3].T + T_w_p[:3, 3]
+        self.rng = np.random.default_rng(seed)
+
+    async def run(self) -> None:
+        while True:
+            c = self.loop.controller
+            s = c.position_mm + self.loop.home_s_mm
+            T = self.loop.rig.T_w_r(s, *c.head_rad) @ self.loop.rig.T_r_l
+            o, z = T[:3, 3], T[:3, 2]
+            # a feature on the beam (a surface there), else the hall's walls
+            off = self.points_w - o
+            lateral = np.linalg.norm(off - np.outer(off @ z, z), axis=1)
+            hit = TRUE_HALL.cast(o, z)
+            if lateral.min() < FEATURE_RADIUS_MM:
+                d = float(off[int(np.argmin(lateral))] @ z)
+            elif hit is not None:
+                d = hit.distance_mm
+            else:
+                await asyncio.sleep(0.01)
+                continue
+            self.tap.on_range(time.monotonic_ns(), d + float(self.rng.normal(0.0, 1.0)), 1)
+            await asyncio.sleep(0.01)
+
+
 @dataclass
 class Harness:
     """A running daemon, its client, the truth and the rig file."""
@@ -122,6 +198,7 @@ class Harness:
     rig: Rig
     rig_path: Path
     report_root: Path
+    workpiece: np.ndarray  # the true T_w_p (scoring only)
 
     async def request(self, op: str, **args: Any) -> Any:
         return await self.client.request(op, **args)
@@ -135,11 +212,23 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     placed = PlacedBoard(BOARD.make(), board_pose(rng))
     fake = FakeController()
     sim = SyntheticCamera(lens, seed=seed, blur_samples=4)
-    home = 150.0 + float(rng.normal(0.0, 0.3))  # surveyed to ~1 mm: RigSpec() says 150
+    # where the home switch truly is: the rig file's survey, off by its σ
+    home = HOME_MM + float(rng.normal(0.0, 0.3))
     loop = SimBoardLoop(fake, rig, sim, placed, FrameClock(seed=seed), blur_mm, home)
     rig_path = tmp / "rig.toml"
-    save_rig(RigSpec(), rig_path)
+    nominal = RigSpec()
+    track = dataclasses.replace(nominal.track, home=Scalar(HOME_MM, 1.0))
+    save_rig(dataclasses.replace(nominal, hall=surveyed_hall(), track=track), rig_path)
     env = CommissioningEnv.for_rig_file(rig_path, lambda: loop.frame_tap, tmp / "reports")
+    recorder = PoseRecorder(fake, env.home_s_mm())
+    env.pose_at = recorder.pose_at
+    recording = asyncio.create_task(recorder.run())
+    true_T_w_p = make_T(
+        euler_zyx(*rng.normal(0, 0.01, 3)), np.array([-300.0, -300.0, 0.0]) + rng.normal(0, 5.0, 3)
+    )
+    ranges = RangeTap()
+    env.ranges = lambda: ranges
+    ranging = asyncio.create_task(FakeRangefinder(loop, true_T_w_p, ranges, seed).run())
     config = dataclasses.replace(Config(), control=ControlConfig(socket_path=str(tmp / "ctl.sock")))
     daemon = Daemon(config, lambda c, t: fake, lambda c, ctl, sink, t: loop, commissioning=env)
     task = asyncio.create_task(daemon.run())
@@ -149,7 +238,9 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
                 break
             await asyncio.sleep(0.02)
         async with await ControlClient.connect_unix(str(tmp / "ctl.sock")) as client:
-            yield Harness(daemon, client, loop, lens, rig, rig_path, tmp / "reports")
+            yield Harness(daemon, client, loop, lens, rig, rig_path, tmp / "reports", true_T_w_p)
     finally:
+        recording.cancel()
+        ranging.cancel()
         daemon.request_stop()
         await asyncio.wait_for(task, 10.0)

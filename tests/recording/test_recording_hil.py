@@ -80,7 +80,7 @@ async def start_daemon(tmp_path: Path, fps: float = FPS) -> asyncio.subprocess.P
     """The daemon on the emulator's pty, recording into tmp/rec, publishing fps poses a second."""
     config = tmp_path / "orbitar.toml"
     config.write_text(CONFIG.format(dir=tmp_path, rec="rec"))
-    (tmp_path / "rig.toml").write_text(RIG.format(fps=fps))
+    (tmp_path / "rig.toml").write_text(RIG.format(fps=fps))  # the rate is the rig file's
     env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
     env.pop("ORBITAR_FAKE_CONTROLLER", None)
     env.pop("NOTIFY_SOCKET", None)

@@ -1,0 +1,231 @@
+"""`orbitar calibrate latency`: the offset between a frame's stamp and its exposure.
+
+The head holds the surveyed board in view while the trolley passes back and forth at constant
+speed. For every frame, the daemon's own pose source (`pose_at(stamp)`, the encoder and head
+buffers with the latency now in the rig file) says where the trolley was; the board's corners
+say where it really was: s* is the arc length that best reprojects them (Gauss-Newton in one
+variable, head angles from the pose source). With a stamp late by δ the difference is
+s(stamp) − s* = v·δ + b: a regression over both directions of travel separates δ (the slope
+against the speed) from any static offset b (home, track placement), as render engines'
+automatic delay detection does. The new latency is the old plus δ, with σ from the regression.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from host.calibration.board import BoardDetector, Detection
+from host.commissioning.frames import FrameTap
+from host.commissioning.motion import AbortedError, RigIO
+from host.commissioning.plan import ViewTarget
+from host.commissioning.report import Page, text_table
+from host.frames.sources import Frame
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.transforms import FloatArray
+from host.rig import Provenance, Scalar
+
+PoseAt = Callable[[int], tuple[float, float, float] | None]  # stamp → (s_mm, pan, tilt)
+SPEED_TOL = 0.05  # frames within 5 % of the commanded speed are at constant speed
+VELOCITY_WINDOW_NS = 20_000_000
+GN_STEPS = 8
+S_STEP_MM = 0.01
+PASS_TIMEOUT_S = 30.0
+POLL_S = 0.005
+
+
+@dataclass(frozen=True)
+class LatencyThresholds:
+    """What a passing latency calibration must reach."""
+
+    min_frames: int = 12
+    max_sigma_ms: float = 2.0
+
+    def text(self) -> str:
+        """One line for the verdict."""
+        return f"≥ {self.min_frames} frames at constant speed, σ ≤ {self.max_sigma_ms} ms"
+
+
+@dataclass(frozen=True)
+class PassFrame:
+    """One frame taken while passing: its stamp, the board's corners, and the pose source's view."""
+
+    stamp_ns: int
+    detection: Detection
+    s_mm: float  # the pose source's arc length at the stamp
+    pan_rad: float
+    tilt_rad: float
+    v_mm_s: float  # the pose source's speed at the stamp
+
+
+@dataclass
+class LatencyOutcome:
+    """Verdict, the estimate and the regression's data."""
+
+    passed: bool
+    reasons: list[str]
+    old_ms: float
+    delta_ms: float = math.nan
+    sigma_ms: float = math.nan
+    bias_mm: float = math.nan
+    frames: int = 0
+    residual_mm: float = math.nan
+
+    @property
+    def new_ms(self) -> float:
+        """The latency to write."""
+        return self.old_ms + self.delta_ms
+
+    def summary(self) -> dict[str, Any]:
+        """Plain values."""
+        rows: list[list[str | float]] = [
+            ["latency before (ms)", round(self.old_ms, 3)],
+            ["latency after (ms)", round(self.new_ms, 3)],
+            ["σ (ms)", round(self.sigma_ms, 3)],
+            ["static offset b (mm)", round(self.bias_mm, 3)],
+            ["frames", self.frames],
+        ]
+        return {
+            "passed": self.passed, "reasons": self.reasons, "latency_ms": self.new_ms,
+            "sigma_ms": self.sigma_ms, "delta_ms": self.delta_ms, "bias_mm": self.bias_mm,
+            "frames": self.frames, "residual_mm": self.residual_mm,
+            "table": text_table(["quantity", "value"], rows),
+        }  # fmt: skip
+
+
+async def capture_passes(
+    io: RigIO, tap: FrameTap, pose_at: PoseAt, detector: BoardDetector, view: ViewTarget,
+    span_mm: float, speed_mm_s: float, passes: int, progress: dict[str, Any],
+) -> list[PassFrame]:  # fmt: skip
+    """Aim at the board from the middle, then pass back and forth, keeping every frame."""
+    start = ViewTarget(view.s_mm - span_mm / 2, view.pan_rad, view.tilt_rad, view.label)
+    await io.go(start)
+    raw: list[tuple[Frame, float]] = []
+    for k in range(passes):
+        progress.update(phase="passing", view=k + 1, of=passes)
+        direction = 1.0 if k % 2 == 0 else -1.0
+        target = view.s_mm + direction * span_mm / 2 - io.home_s_mm
+        io.snapshot()
+        await io.controller.move_to(target, speed_mm_s)
+        raw += await _frames_until_still(io, tap, target)
+    progress["phase"] = "measuring"
+    out = []
+    for frame, _ in raw:
+        got = _pose_and_speed(pose_at, frame.exposure_ns)
+        if got is None or abs(abs(got[3]) - speed_mm_s) > SPEED_TOL * speed_mm_s:
+            continue
+        det = await asyncio.to_thread(detector.detect, frame.image)
+        if det is not None:
+            out.append(PassFrame(frame.exposure_ns, det, *got))
+    return out
+
+
+async def _frames_until_still(
+    io: RigIO, tap: FrameTap, target_mm: float
+) -> list[tuple[Frame, float]]:
+    """Every new frame until the trolley is back at rest at its target."""
+    frames: list[tuple[Frame, float]] = []
+    last = -1
+    deadline = time.monotonic() + PASS_TIMEOUT_S
+    await asyncio.sleep(0.05)  # let the move begin
+    while True:
+        frame = tap.latest()
+        if frame is not None and frame.index != last:
+            last = frame.index
+            frames.append((frame, time.monotonic()))
+        snap = io.snapshot()
+        pos = snap.get("position_mm")
+        if snap.get("state") == "READY" and pos is not None and abs(float(pos) - target_mm) < 0.5:
+            return frames
+        if time.monotonic() > deadline:
+            raise AbortedError(f"pass to {target_mm:.0f} mm not done within {PASS_TIMEOUT_S:.0f} s")
+        await asyncio.sleep(POLL_S)
+
+
+def _pose_and_speed(pose_at: PoseAt, t_ns: int) -> tuple[float, float, float, float] | None:
+    """(s, pan, tilt, v) from the pose source at t_ns, v by a central difference."""
+    now, a, b = (
+        pose_at(t_ns),
+        pose_at(t_ns - VELOCITY_WINDOW_NS),
+        pose_at(t_ns + VELOCITY_WINDOW_NS),
+    )
+    if now is None or a is None or b is None:
+        return None
+    v = (b[0] - a[0]) / (2 * VELOCITY_WINDOW_NS / 1e9)
+    return now[0], now[1], now[2], v
+
+
+def board_arc_length(rig: Rig, camera: CameraModel, T_w_b: FloatArray, f: PassFrame) -> float:
+    """The arc length whose camera pose best reprojects the frame's corners (head angles fixed)."""
+    X, uv = f.detection.object_points, f.detection.image_points
+    s = f.s_mm
+
+    def res(s_mm: float) -> FloatArray:
+        pred, _ = camera.project_world(rig.T_c_w(s_mm, f.pan_rad, f.tilt_rad) @ T_w_b, X)
+        out: FloatArray = (pred - uv).ravel()
+        return out
+
+    for _ in range(GN_STEPS):
+        r = res(s)
+        J = (res(s + S_STEP_MM) - r) / S_STEP_MM
+        step = -float(J @ r) / max(float(J @ J), 1e-12)
+        s += step
+        if abs(step) < 1e-4:
+            break
+    return s
+
+
+def judge(
+    frames: Sequence[PassFrame], rig: Rig, camera: CameraModel, T_w_b: FloatArray, old_ms: float,
+    limits: LatencyThresholds,
+) -> LatencyOutcome:  # fmt: skip
+    """Regress s(stamp) − s* on the speed: slope δ, intercept b."""
+    n = len(frames)
+    speeds = [f.v_mm_s for f in frames]
+    if n < limits.min_frames or not (min(speeds, default=0) < 0 < max(speeds, default=0)):
+        why = (
+            f"too few frames at constant speed in both directions: {n}, need ≥ {limits.min_frames}"
+        )
+        return LatencyOutcome(False, [why], old_ms, frames=n)
+    d = np.array([f.s_mm - board_arc_length(rig, camera, T_w_b, f) for f in frames])
+    A = np.column_stack([np.array(speeds) / 1e3, np.ones(n)])  # δ in ms, b in mm
+    coef, *_ = np.linalg.lstsq(A, d, rcond=None)
+    r = d - A @ coef
+    var = float(r @ r) / max(n - 2, 1)
+    cov = var * np.linalg.inv(A.T @ A)
+    delta, sigma = float(coef[0]), float(np.sqrt(cov[0, 0]))
+    out = LatencyOutcome(True, [], old_ms, delta, sigma, float(coef[1]), n, float(np.sqrt(var)))
+    if sigma > limits.max_sigma_ms:
+        out.passed = False
+        out.reasons = [f"σ {sigma:.2f} ms > {limits.max_sigma_ms} ms (more passes, or faster)"]
+    else:
+        out.reasons = [
+            f"latency {out.new_ms:.2f} ± {sigma:.2f} ms over {n} frames (was {old_ms:.2f} ms)"
+        ]
+    return out
+
+
+def latency_update(outcome: LatencyOutcome) -> dict[str, Any]:
+    """`camera.latency` for the rig file."""
+    if not outcome.passed:
+        raise ValueError("only a passing calibration is written")
+    prov = Provenance.now(
+        "calibrate latency (passes past a board)", outcome.residual_mm, "mm", outcome.frames
+    )
+    return {"camera.latency": Scalar(outcome.new_ms, outcome.sigma_ms, prov)}
+
+
+def latency_page(outcome: LatencyOutcome, limits: LatencyThresholds) -> Page:
+    """The report page."""
+    pg = Page(
+        "Camera latency", outcome.passed, outcome.reasons, limits.text(), data=outcome.summary()
+    )
+    pg.preformatted.append(("Result", outcome.summary()["table"]))
+    return pg
