@@ -33,6 +33,7 @@ from host.link.common import (
     decode_enum,
     note_unknown,
 )
+from host.link.probe_rate import ProbeRate
 from host.transport.base import Transport, TransportError
 from protocol import (
     PROTOCOL_VERSION,
@@ -43,7 +44,7 @@ from protocol import (
     encode_frame,
     spec_of,
 )
-from protocol.enums import NakCode, State
+from protocol.enums import Capability, NakCode, State
 from protocol.messages import ClockSync as ClockSyncMsg
 from protocol.messages import ClockSyncReply, Estop, Heartbeat, Hello, Identify, Nak, Stop
 
@@ -54,7 +55,7 @@ U32_MOD = 1 << 32
 # A frame with a tiny seq far from the expected one: the controller's counter restarted.
 SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
-HOST_CAPABILITIES = 0  # Capability bits this host offers in HELLO (none yet)
+HOST_CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in HELLO
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
 RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
@@ -75,6 +76,9 @@ class SessionConfig:
     heartbeat_interval_s: float = 0.1
     dead_after_heartbeats: int = 10  # silence of this many intervals declares the link dead
     clock_sync_interval_s: float = 0.1  # 10 Hz probes; 0 disables clock sync
+    # Once the fit has converged and its error stays small, probes go out this often instead
+    # (host.link.probe_rate); a value ≤ clock_sync_interval_s keeps the steady rate.
+    clock_sync_slow_interval_s: float = 1.0
     # A probe waits until the host has sent nothing for this long (at most one probe interval):
     # written behind another frame it would queue on the line, a delay on the way out only that
     # the estimator cannot tell from link asymmetry. The largest frame takes 7.3 ms at 115200 Bd.
@@ -87,6 +91,8 @@ class SessionConfig:
     # The controller keeps the replies of at least this many × rx_window commands (PROTOCOL.md,
     # "Duplicate suppression"). See Session._window_open for why the factor matters.
     reply_cache_factor: int = 2
+    # Capability bits offered in HELLO; a feature is used when IDENTIFY offers it too.
+    capabilities: int = HOST_CAPABILITIES
 
 
 class RtoEstimator:
@@ -170,6 +176,9 @@ class Session:
     def __post_init__(self) -> None:
         self.stats = LinkStats()
         self.clock = ClockSync()
+        self.probe_rate = ProbeRate(
+            self.config.clock_sync_interval_s, self.config.clock_sync_slow_interval_s
+        )
         self.rto = RtoEstimator(self.config)
         self.identity: Identify | None = None
         self._decoder = FrameDecoder()
@@ -237,7 +246,8 @@ class Session:
     async def handshake(self) -> tuple[Identify, bool]:
         """HELLO → IDENTIFY; returns it and whether the boot id changed (controller reset)."""
         self._window = 1
-        hello = Hello(PROTOCOL_VERSION, SCHEMA_HASH, HOST_CAPABILITIES, self._session_id)
+        offered = self.config.capabilities
+        hello = Hello(PROTOCOL_VERSION, SCHEMA_HASH, offered, self._session_id)
         packet = await self.request(hello, max_tries=self.config.handshake_tries)
         ident = packet.message
         assert isinstance(ident, Identify)
@@ -249,11 +259,12 @@ class Session:
         rebooted = self.identity is not None and self.identity.boot_id != ident.boot_id
         if rebooted or self.identity is None:
             self.clock = ClockSync(ident.mcu_clock_hz or 1_000_000)
+            self.probe_rate.reset()
         if rebooted:
             self.stats.controller_resets += 1
         self.identity = ident
         # A feature is used only when both sides offer it (issue 16 negotiates with these bits).
-        self.capabilities = HOST_CAPABILITIES & ident.capabilities
+        self.capabilities = offered & ident.capabilities
         cache = self.config.reply_cache_factor * ident.rx_window
         self._window = max(1, min(ident.rx_window, (cache + 1) // 2))
         self._peer_uptime_ms = None
@@ -534,10 +545,14 @@ class Session:
         cfg = self.config
         loop = asyncio.get_running_loop()
         while self._running:
-            await asyncio.sleep(cfg.clock_sync_interval_s)
+            # Fast until the fit converges, slow while its error stays small (probe_rate).
+            rate = self.probe_rate
+            rate.fast_s, rate.slow_s = cfg.clock_sync_interval_s, cfg.clock_sync_slow_interval_s
+            interval_s = rate.interval_s(self.clock, self._mcu_now())
+            await asyncio.sleep(interval_s)
             # On a line just written to (the heartbeat loop wakes at the same rate), wait until
             # the host's previous frame has left.
-            give_up = loop.time() + cfg.clock_sync_interval_s
+            give_up = loop.time() + min(interval_s, cfg.clock_sync_interval_s)
             while (wait := self._last_tx_s + cfg.clock_probe_quiet_s - loop.time()) > 0:
                 if loop.time() + wait > give_up:
                     break
@@ -553,6 +568,12 @@ class Session:
                 self._probes[token] = t0
                 while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
                     del self._probes[next(iter(self._probes))]
+
+    def _mcu_now(self) -> int | None:
+        """The controller clock now by the current fit (32-bit), None before the first probe."""
+        if not self.clock.ready:
+            return None
+        return self.clock.host_to_mcu(time.monotonic_ns()) & 0xFFFF_FFFF
 
     def _send_quietly(self, message: object) -> int | None:
         """Background send: a dead link is reported by the transport, not raised here."""

@@ -149,7 +149,22 @@ typedef enum {
 #define ORB_PARAM_HOMING_TRAVEL_UM_DEFAULT INT32_C(20000000)
 #define ORB_PARAM_HOMING_TRAVEL_UM_MIN INT32_C(1000)
 #define ORB_PARAM_HOMING_TRAVEL_UM_MAX INT32_C(100000000)
-#define ORB_PARAM_COUNT 10u
+/* with batched telemetry, a ENCODER batch is sent once its oldest sample is this old (or when full); 0 sends every sample alone (ms) */
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS 11u
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS_DEFAULT INT32_C(20)
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS_MIN INT32_C(0)
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS_MAX INT32_C(1000)
+/* with batched telemetry, a RANGE batch is sent once its oldest sample is this old (or when full); 0 sends every sample alone (ms) */
+#define ORB_PARAM_RANGE_BATCH_AGE_MS 12u
+#define ORB_PARAM_RANGE_BATCH_AGE_MS_DEFAULT INT32_C(20)
+#define ORB_PARAM_RANGE_BATCH_AGE_MS_MIN INT32_C(0)
+#define ORB_PARAM_RANGE_BATCH_AGE_MS_MAX INT32_C(1000)
+/* with batched telemetry, a HEAD batch is sent once its oldest sample is this old (or when full); 0 sends every sample alone (ms) */
+#define ORB_PARAM_HEAD_BATCH_AGE_MS 13u
+#define ORB_PARAM_HEAD_BATCH_AGE_MS_DEFAULT INT32_C(50)
+#define ORB_PARAM_HEAD_BATCH_AGE_MS_MIN INT32_C(0)
+#define ORB_PARAM_HEAD_BATCH_AGE_MS_MAX INT32_C(1000)
+#define ORB_PARAM_COUNT 13u
 
 /* ---- little-endian field access by shifts ---- */
 static inline void orb_put_u8(uint8_t *p, uint8_t v) { p[0] = v; }
