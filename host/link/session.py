@@ -548,7 +548,7 @@ class Session:
             # Fast until the fit converges, slow while its error stays small (probe_rate).
             rate = self.probe_rate
             rate.fast_s, rate.slow_s = cfg.clock_sync_interval_s, cfg.clock_sync_slow_interval_s
-            interval_s = rate.interval_s(self.clock, self._mcu_now())
+            interval_s = rate.interval_s(self.clock, time.monotonic_ns())
             await asyncio.sleep(interval_s)
             # On a line just written to (the heartbeat loop wakes at the same rate), wait until
             # the host's previous frame has left.
@@ -568,12 +568,6 @@ class Session:
                 self._probes[token] = t0
                 while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
                     del self._probes[next(iter(self._probes))]
-
-    def _mcu_now(self) -> int | None:
-        """The controller clock now by the current fit (32-bit), None before the first probe."""
-        if not self.clock.ready:
-            return None
-        return self.clock.host_to_mcu(time.monotonic_ns()) & 0xFFFF_FFFF
 
     def _send_quietly(self, message: object) -> int | None:
         """Background send: a dead link is reported by the transport, not raised here."""
