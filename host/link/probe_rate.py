@@ -20,7 +20,7 @@ from host.link.clocksync import ClockSync
 ERROR_TARGET_NS = 200_000  # what the clock mapping must keep to, over the radio's jitter too
 SLOW_BELOW_FRACTION = 0.25  # slow down once the smoothed update is below this × target
 FAST_ABOVE_FRACTION = 0.5  # speed up again above this × target
-MIN_PROBES_TO_SLOW = 100  # probes the fit must have used before it may slow down
+MIN_PROBES_TO_SLOW = 24  # probes the fit must have used before it may slow down
 SMOOTHING = 0.2  # weight of the newest update in the smoothed error
 
 
