@@ -113,7 +113,7 @@ def unpack(batch: Batch, stats: BatchStats | None = None) -> list[Sample]:
 # HEAD stays alone over XBee: at 10 Hz its time step exceeds a record's 65 ms.
 BATCH_AGES_MS: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 5, Stream.RANGE: 5, Stream.HEAD: 20},
-    "xbee": {Stream.ENCODER: 30, Stream.RANGE: 60, Stream.HEAD: 0},
+    "xbee": {Stream.ENCODER: 40, Stream.RANGE: 60, Stream.HEAD: 0},
     "can": {Stream.ENCODER: 0, Stream.RANGE: 0, Stream.HEAD: 0},
 }
 BATCH_AGE_PARAMS = {

@@ -61,18 +61,18 @@ log = logging.getLogger(__name__)
 # air by itself. With batched telemetry (both sides offer it in the handshake) a packet carries a
 # stream's samples of up to its batch age (host.link.batches.BATCH_AGES_MS): its first sample in
 # full, then 9 B (encoder) or 5 B (range) per further one. At the rates below, per second:
-# encoder 100 Hz, age 30 ms, 4 a batch: 25 × (53 + 18) = 1775 B; range 50 Hz, age 60 ms, 4 a
+# encoder 100 Hz, age 40 ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, 4 a
 # batch: 12.5 × (33 + 18) = 637 B; head 10 Hz alone (its 100 ms step exceeds a record's 65 ms):
 # 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) = 90 B. The clock sync's probe pairs cost
 # 2 × (23 + 18) = 82 B per Hz: 10 Hz (820 B/s, 19 %) until the fit converges, then 1 Hz
-# (host.link.probe_rate). Converged that is 2974 B/s = 68 % of the air with ranging (encoder and
-# head only: 2337 B/s = 53 %); converging, 3712 B/s = 85 % for the first seconds, which the
+# (host.link.probe_rate). Converged that is 2799 B/s = 64 % of the air with ranging (encoder and
+# head only: 2162 B/s = 49 %); converging, 3537 B/s = 81 % for the first ~20 s, which the
 # modules' buffers ride out at some loss. The rest carries commands (a full window of 8 MOVE_TO
 # and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries; tests/service/test_stream_budget.py
 # redoes the sum with the firmware's own batcher. Beyond the air's rate a module's 202-byte
 # buffer overflows and loses replies as often as telemetry; the daemon then sheds telemetry on
 # XBee (`XBEE_SHEDDING`), slowing the streams and lengthening the batch ages together. The price
-# of batching is age: an encoder sample waits up to 30 ms for its batch, then ~25 ms on the way.
+# of batching is age: an encoder sample waits up to 40 ms for its batch, then ~25 ms on the way.
 # A controller that does not batch gets the single-sample budget instead
 # (host.link.batches.SINGLE_SAMPLE_RATES_HZ): without ranging 30 × 44 + 10 × 39 + 2 × 45 + 820
 # = 2620 B/s = 60 %, with ranging 25 × 44 + 15 × 36 + 10 × 39 + 2 × 45 + 820 = 67 %. The

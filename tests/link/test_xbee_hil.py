@@ -111,7 +111,7 @@ async def test_daemon_rates_fit_the_air_once_the_clock_sync_has_converged(
             break
         await asyncio.sleep(0.1)
     assert ctrl.session.probe_rate.slow, "the clock sync never slowed its probes"
-    await _rates_fit(ctrl, module, 0.75)  # 68 % planned, plus the commands
+    await _rates_fit(ctrl, module, 0.75)  # 64 % planned, plus the commands
 
 
 @pytest.mark.parametrize("xbee", ["single", "batched"], indirect=True)
