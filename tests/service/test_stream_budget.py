@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from firmware.batching import Batcher
+from firmware.batching import Batcher, Sample
 from hil_sim.links.endpoint import build
 from hil_sim.links.pacing import uart_rate_bytes_s
 from hil_sim.links.xbee import AIR_OVERHEAD_BYTES, AIR_RATE_BPS
@@ -32,16 +32,20 @@ SAMPLES = {
 PROBE_HZ = 1.0 / SessionConfig().clock_sync_interval_s
 CONVERGED_PROBE_HZ = 1.0 / SessionConfig().clock_sync_slow_interval_s
 TICK_US = 1_000
-MAKE_SAMPLE = {
-    Stream.ENCODER: lambda t, i: EncoderSample(t, 16 * i, 13 * i, 1575, 0x10),
-    Stream.RANGE: lambda t, i: RangeSample(t, 4_000_000 - 5 * i, 200),
-    Stream.HEAD: lambda t, i: HeadSample(t, 100 * i, 0),
-}
+
+
+def _sample(stream: Stream, t_us: int, i: int) -> Sample:
+    """The i-th sample of a stream at MCU time t_us: a trolley at ~100 mm/s."""
+    if stream == Stream.ENCODER:
+        return EncoderSample(t_us, 16 * i, 13 * i, 1575, 0x10)
+    if stream == Stream.RANGE:
+        return RangeSample(t_us, 4_000_000 - 5 * i, 200)
+    return HeadSample(t_us, 100 * i, 0)
 
 
 def batched_bytes_per_s(stream: Stream, rate_hz: int, age_ms: int, overhead: int) -> float:
     """Wire bytes (+ per-packet overhead) one stream sends per second, batched as the firmware."""
-    if age_ms == 0 or stream not in MAKE_SAMPLE:
+    if age_ms == 0 or stream not in (Stream.ENCODER, Stream.RANGE, Stream.HEAD):
         return rate_hz * (_frame(SAMPLES[stream]) + overhead)
     batcher, acc, sent, total = Batcher(), 0, 0, 0
     for tick in range(1_000):
@@ -50,7 +54,7 @@ def batched_bytes_per_s(stream: Stream, rate_hz: int, age_ms: int, overhead: int
         batches = []
         if acc >= 1_000:
             acc -= 1_000
-            batches += batcher.add(MAKE_SAMPLE[stream](now, sent))
+            batches += batcher.add(_sample(stream, now, sent))
             sent += 1
         due = batcher.due(now, age_ms * 1000)
         batches += [due] if due is not None else []
