@@ -549,7 +549,11 @@ class Session:
             rate = self.probe_rate
             rate.fast_s, rate.slow_s = cfg.clock_sync_interval_s, cfg.clock_sync_slow_interval_s
             interval_s = rate.interval_s(self.clock, time.monotonic_ns())
-            await asyncio.sleep(interval_s)
+            wake = loop.time() + interval_s
+            while (left := wake - loop.time()) > 0 and self._running:
+                await asyncio.sleep(min(left, cfg.clock_sync_interval_s))
+                if not rate.slow:
+                    break  # a controller reset restarted the fit: probe at once
             # On a line just written to (the heartbeat loop wakes at the same rate), wait until
             # the host's previous frame has left.
             give_up = loop.time() + min(interval_s, cfg.clock_sync_interval_s)

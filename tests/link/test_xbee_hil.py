@@ -24,10 +24,10 @@ from host.transport import create_transport
 from protocol.enums import Stream
 
 # More than the air carries: what the daemon streamed over XBee before the air budget (~130 % of
-# the air in single samples), and as much in batches (full batches: encoder ~96 %, the rest ~37 %).
+# the air in single samples), and as much in batches (full batches: encoder ~96 %, the rest ~41 %).
 OVERLOAD_HZ = {
     "single": {Stream.ENCODER: 50, Stream.RANGE: 50, Stream.HEAD: 20, Stream.STATUS: 10},
-    "batched": {Stream.ENCODER: 300, Stream.RANGE: 100, Stream.HEAD: 50, Stream.STATUS: 10},
+    "batched": {Stream.ENCODER: 300, Stream.RANGE: 100, Stream.HEAD: 10, Stream.STATUS: 10},
 }
 CAPABILITIES = {"single": 0, "batched": HOST_CAPABILITIES}
 COMMAND_EVERY_S = 0.2
