@@ -515,6 +515,7 @@ class Session:
             return
         self.stats.clock_replies += 1
         t1_ns = self.transport.rx_time_ns or time.monotonic_ns()  # its chunk's arrival (recorded)
+        self.probe_rate.check_reply(self.clock, sent_ns, msg.mcu_time_us, t1_ns)
         self.clock.add_probe(sent_ns, msg.mcu_time_us, t1_ns, msg.rx_time_us)
 
     def _emit(self, event: LinkEvent, detail: str) -> None:
