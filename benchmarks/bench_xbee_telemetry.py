@@ -6,7 +6,8 @@
 The daemon's Controller talks to the firmware mirror and the simulated plant running in real
 time behind the emulated XBee pair (API mode 2, ~35 kbit/s air, 202-byte module buffers), with
 the daemon's XBee rates for the mode: single samples (a host that does not offer batching, at
-`SINGLE_SAMPLE_RATES_HZ`) and batched (both offer it, at the batched rates and batch ages). Each
+`SINGLE_SAMPLE_RATES_HZ`), batched (both offer it, at the batched rates and the link's batch
+ages) and batched_short (the same with shorter ages, `SHORT_AGES_MS`: the latency/air trade). Each
 mode waits for the steady state (the clock sync's probes slowed down and no shedding; at most
 `SETTLE_MAX_S`, its time printed as `settle_s`), then measures for `MEASURE_S`:
 
@@ -40,10 +41,12 @@ from hil_sim.links.xbee import AIR_OVERHEAD_BYTES, AIR_RATE_BPS, CONTROLLER_ADDR
 from hil_sim.runner import RealtimeRunner, Simulation
 from hil_sim.scenario import Scenario
 from host.link import Controller
+from host.link.batches import TelemetryPlan, plan_for
 from host.link.session import SessionConfig
 from host.service.wiring import XBEE_SHEDDING, stream_rates
 from host.transport import create_transport
 from protocol import encode_frame
+from protocol.enums import Stream
 from protocol.messages import ClockSync, ClockSyncReply
 
 SETTLE_MAX_S = 60.0  # waits at most this long for the steady state
@@ -52,7 +55,9 @@ CLOCK_CHECK_S = 0.5
 PROBE_PAIR_AIR_BYTES = (
     len(encode_frame(ClockSync(0), 0)) + len(encode_frame(ClockSyncReply(0, 0, 0, 0), 0))
 ) + 2 * AIR_OVERHEAD_BYTES
-MODES = ("single", "batched")
+MODES = ("single", "batched", "batched_short")
+# The third mode shows the trade-off: batches that wait less (lower age), at more air.
+SHORT_AGES_MS = {Stream.ENCODER: 10, Stream.RANGE: 20, Stream.HEAD: 0}
 
 
 class AgeSink:
@@ -100,7 +105,8 @@ def _pct(values: list[float], q: float) -> float:
 
 async def run_mode(mode: str, tmp: str) -> dict[str, float | int]:
     """One mode's figures."""
-    batched = mode == "batched"
+    batched = mode != "single"
+    plan = TelemetryPlan(SHORT_AGES_MS) if mode == "batched_short" else plan_for("xbee")
     runner = RealtimeRunner(Simulation(Scenario(seed=1)))
     loop = asyncio.get_running_loop()
     module = XBeeModule(SimPortEndpoint(runner.port, loop), 2, link_path=f"{tmp}/xb-{mode}")
@@ -108,7 +114,7 @@ async def run_mode(mode: str, tmp: str) -> dict[str, float | int]:
     runner.start()
     transport = create_transport("xbee", url=module.path, dest_addr64=CONTROLLER_ADDR64, api_mode=2)
     config = SessionConfig() if batched else SessionConfig(capabilities=0)
-    ctrl = Controller(transport, config, shedding=XBEE_SHEDDING)
+    ctrl = Controller(transport, config, shedding=XBEE_SHEDDING, telemetry_plan=plan)
     sink = AgeSink()
     ctrl.add_sink(sink)
     try:
