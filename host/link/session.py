@@ -56,6 +56,7 @@ U32_MOD = 1 << 32
 SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
 HOST_CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in HELLO
+PROBE_ALIGN_MAX_S = 0.1  # a probe waits at most this long for a controller frame to follow
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
 RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
@@ -195,6 +196,7 @@ class Session:
         self._cmd_index = 0
         self._slot_waiters: list[asyncio.Future[None]] = []
         self._probes: dict[int, int] = {}  # token → host send time, ns
+        self._frame_in = asyncio.Event()  # a controller frame arrived (probes follow one)
         self._tokens = itertools.count(1)
         self._tasks: list[asyncio.Task[None]] = []
         self._running = False
@@ -447,6 +449,7 @@ class Session:
             if self._rx_seq.see(packet.seq, self.stats):
                 self._emit(LinkEvent.RESET_SUSPECTED, f"controller seq restarted at {packet.seq}")
             self._last_rx_s = asyncio.get_running_loop().time()
+            self._frame_in.set()
             self._dispatch(packet)
         if self._decoder.drops.unknown_id != unknown_ids:
             note_unknown("message id", self._decoder.last_unknown_id or 0)
@@ -555,6 +558,11 @@ class Session:
                 await asyncio.sleep(min(left, cfg.clock_sync_interval_s))
                 if not rate.slow:
                     break  # a controller reset restarted the fit: probe at once
+            # Right after a controller frame arrived, its side of the link has just sent what it
+            # had: the reply then likely finds the way back (a radio module's buffer) empty.
+            self._frame_in.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._frame_in.wait(), PROBE_ALIGN_MAX_S)
             # On a line just written to (the heartbeat loop wakes at the same rate), wait until
             # the host's previous frame has left.
             give_up = loop.time() + min(interval_s, cfg.clock_sync_interval_s)
