@@ -560,9 +560,12 @@ class Session:
                     break  # a controller reset restarted the fit: probe at once
             # Right after a controller frame arrived, its side of the link has just sent what it
             # had: the reply then likely finds the way back (a radio module's buffer) empty.
+            # (Only while frames flow: a quiet link has nothing to wait for.)
             self._frame_in.clear()
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._frame_in.wait(), PROBE_ALIGN_MAX_S)
+            align_s = min(PROBE_ALIGN_MAX_S, cfg.clock_sync_interval_s)
+            if loop.time() - self._last_rx_s < align_s:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._frame_in.wait(), align_s)
             # On a line just written to (the heartbeat loop wakes at the same rate), wait until
             # the host's previous frame has left.
             give_up = loop.time() + min(interval_s, cfg.clock_sync_interval_s)
