@@ -2,6 +2,7 @@
 
     python benchmarks/bench_link_transport.py                 # every transport
     python benchmarks/bench_link_transport.py --only serial_pty xbee_ap2
+    python benchmarks/bench_link_transport.py --only xbee_ap2 --telemetry  # + XBee batching
 
 `section_transport()` is the section `bench_link.py` runs beside the session figures; this file
 also runs on its own. Prints `transport.<backend>.<metric>: value` lines, backends side by side,
@@ -34,6 +35,8 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_xbee_telemetry import section_xbee_telemetry
 
 from hil_sim.links.can_node import SlcanAdapter, VirtualCanNode
 from hil_sim.links.endpoint import FakeController, build
@@ -299,8 +302,15 @@ def main(argv: list[str] | None = None) -> int:
     """Run the transport section."""
     parser = argparse.ArgumentParser(description="transport figures of the link benchmark")
     parser.add_argument("--only", nargs="*", choices=TRANSPORTS, help="transports to run")
+    parser.add_argument(
+        "--telemetry",
+        action="store_true",
+        help="also XBee telemetry, single samples beside batches (bench_xbee_telemetry.py)",
+    )
     args = parser.parse_args(argv)
     asyncio.run(section_transport(args.only))
+    if args.telemetry:
+        asyncio.run(section_xbee_telemetry())
     return 0
 
 

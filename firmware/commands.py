@@ -12,7 +12,6 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from firmware.config import (
-    CAPABILITIES,
     CHAIN_PITCH_UM,
     ENCODER_COUNTS_PER_REV,
     FW_VERSION,
@@ -226,6 +225,8 @@ def _nak(fw: Firmware, seq: int, code: NakCode) -> m.Nak:
 
 def _hello(fw: Firmware, seq: int, msg: object) -> Reply:
     """IDENTIFY, whatever the host's version: the host decides whether it can talk to us."""
+    if isinstance(msg, m.Hello):
+        fw.start_session(msg.capabilities)  # a foreign HELLO (msg None) opens no session
     return m.Identify(
         seq,
         PROTOCOL_VERSION,
@@ -240,7 +241,7 @@ def _hello(fw: Firmware, seq: int, msg: object) -> Reply:
         MAX_FRAME_BYTES,
         RX_WINDOW,
         fw.state,
-        CAPABILITIES,
+        fw.capabilities,
     )
 
 

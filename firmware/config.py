@@ -6,6 +6,7 @@ the conversions below are exact rational arithmetic on ints, as the C does them.
 
 from __future__ import annotations
 
+from protocol.enums import Capability
 from protocol.schema import MAX_WIRE_FRAME
 
 FW_VERSION = (0 << 16) | (3 << 8) | 0  # major<<16 | minor<<8 | patch
@@ -25,7 +26,7 @@ UM_PER_REV = SPROCKET_TEETH * CHAIN_PITCH_UM  # 254 000 µm of chain per sprocke
 
 MAX_FRAME_BYTES = MAX_WIRE_FRAME  # the protocol's limit: one XBee unicast payload
 RX_WINDOW = 8
-CAPABILITIES = 0  # Capability bits this firmware offers in IDENTIFY (none yet)
+CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in IDENTIFY
 REPLY_CACHE_SIZE = 16  # at least RX_WINDOW: duplicates within the window are answered from here
 RX_BUFFER_BYTES = 256  # the UART DMA ring
 TX_QUEUE_FRAMES = 32

@@ -11,7 +11,9 @@ from __future__ import annotations
 import enum
 
 from firmware import commands
+from firmware.batching import Batcher, Sample
 from firmware.config import (
+    CAPABILITIES,
     ENCODER_COUNTS_PER_REV,
     STEPS_PER_REV,
     SUB_PER_STEP,
@@ -29,6 +31,7 @@ from firmware.link import HoldBuffer, LinkCounters, ReplyCache, RxFramer, TxQueu
 from firmware.motion import Profile
 from firmware.storage import LoadResult, ParamStore
 from protocol import Fault, Inputs, ParamId, State, Stream
+from protocol.enums import Capability
 from protocol.messages import (
     EncoderSample,
     HeadSample,
@@ -52,6 +55,13 @@ _F_FOLLOWING = int(Fault.FOLLOWING_ERROR)
 _N_STREAMS = len(Stream)
 _MOTION_STATES = (State.MOVING, State.HOMING)
 _WATCHDOG_STATES = (State.IDLE, State.HOMING, State.READY, State.MOVING)
+_BATCHED = int(Capability.BATCHED_TELEMETRY)
+_BATCH_AGE_PARAMS = {
+    int(Stream.ENCODER): ParamId.ENCODER_BATCH_AGE_MS,
+    int(Stream.RANGE): ParamId.RANGE_BATCH_AGE_MS,
+    int(Stream.HEAD): ParamId.HEAD_BATCH_AGE_MS,
+}
+_BATCHED_STREAMS = tuple(_BATCH_AGE_PARAMS)
 
 
 class HomingPhase(enum.Enum):
@@ -99,8 +109,11 @@ class Firmware:
     stream_acc: list[int]
     active_streams: list[int]
 
-    def __init__(self, hal: Hal) -> None:
+    def __init__(self, hal: Hal, capabilities: int = CAPABILITIES) -> None:
         self.hal = hal
+        self.capabilities = capabilities  # offered in IDENTIFY (0: a controller without batching)
+        self.batching = False  # both sides offered BATCHED_TELEMETRY in this session
+        self.batchers = {s: Batcher() for s in _BATCHED_STREAMS}
         self.counters = LinkCounters()
         self.params = ParamStore()
         self.rx = RxFramer(self.counters)
@@ -134,6 +147,8 @@ class Firmware:
             self.state = State.READY if self.homed else State.IDLE
         if self.active_streams:
             self._telemetry()
+        if self.batching:
+            self._send_due_batches()
         if (self.state, self.faults) != self._reported:
             # Every state or fault change is reported, streams on or off (PROTOCOL §10).
             self.tx.send(self._status(), reply=True)
@@ -240,8 +255,15 @@ class Firmware:
         """MAX_ACCEL_UM_S2 in profile units."""
         return accel_to_msteps_per_tick(self.params.get(ParamId.MAX_ACCEL_UM_S2))
 
+    def start_session(self, host_capabilities: int) -> None:
+        """A HELLO opened a session: samples still waiting go out, then batch only if agreed."""
+        self._flush_batches()
+        self.batching = bool(host_capabilities & self.capabilities & _BATCHED)
+
     def set_stream(self, stream: int, rate_hz: int) -> None:
         """Switch a telemetry stream on at a rate, or off with 0."""
+        if rate_hz == 0 and stream in self.batchers:
+            self._flush_batch(stream)  # the samples taken so far are not held back
         self.stream_rates[stream] = rate_hz
         self.stream_acc[stream] = 0
         self.active_streams = [s for s in range(_N_STREAMS) if self.stream_rates[s]]
@@ -284,6 +306,9 @@ class Firmware:
         self.stream_rates = [0] * _N_STREAMS
         self.stream_acc = [0] * _N_STREAMS
         self.active_streams = []
+        self.batching = False
+        for batcher in self.batchers.values():
+            batcher.clear()
         self.hal.encoder_index_latch()  # discard a pulse from before the reset
         self.hal.drive_enable(True)
         self.state = State.IDLE
@@ -316,6 +341,7 @@ class Firmware:
         mark = hal.mark_latch()
         if mark is not None and Stream.ENCODER in self.active_streams:
             back = _i32(raw - mark)
+            self._flush_batch(int(Stream.ENCODER))  # the samples before the mark go first
             self.tx.send(RefMark(self.now_us, _i32(self.enc_pos - back)))
 
     def _receive(self, data: bytes, at_us: int) -> None:
@@ -442,4 +468,37 @@ class Firmware:
         else:
             pan, tilt = self.hal.head_read()
             msg = HeadSample(t, _i32(pan), _i32(tilt))
-        self.tx.send(msg)
+        if self.batching and stream in self.batchers and self._batch_age_us(stream) > 0:
+            assert isinstance(msg, EncoderSample | RangeSample | HeadSample)
+            self._batch(stream, msg)
+        else:
+            self.tx.send(msg)
+
+    # ---- batched telemetry (firmware.batching) ---------------------------------------------
+
+    def _batch_age_us(self, stream: int) -> int:
+        """The stream's *_BATCH_AGE_MS in µs: how long a batch's oldest sample may wait."""
+        return self.params.values[_BATCH_AGE_PARAMS[stream]] * 1000
+
+    def _batch(self, stream: int, sample: Sample) -> None:
+        """Add a sample to its stream's batch; queue the batches that are complete."""
+        for batch in self.batchers[stream].add(sample):
+            self.tx.send(batch)
+
+    def _send_due_batches(self) -> None:
+        """Queue each batch whose oldest sample has waited its age (latency stays bounded)."""
+        for stream, batcher in self.batchers.items():
+            batch = batcher.due(self.now_us, self._batch_age_us(stream))
+            if batch is not None:
+                self.tx.send(batch)
+
+    def _flush_batch(self, stream: int) -> None:
+        """Queue what one stream's batch holds."""
+        batch = self.batchers[stream].flush()
+        if batch is not None:
+            self.tx.send(batch)
+
+    def _flush_batches(self) -> None:
+        """Queue every stream's waiting samples."""
+        for stream in self.batchers:
+            self._flush_batch(stream)

@@ -50,6 +50,7 @@ class Capability(enum.IntFlag):
     """Optional features, offered in HELLO and IDENTIFY; one is used only when both set its bit."""
 
     NONE = 0  # no optional feature; bits are assigned by later revisions (unknown bits ignored)
+    BATCHED_TELEMETRY = 0x01  # ENCODER_BATCH, RANGE_BATCH, HEAD_BATCH in place of single samples
 
 
 class Stream(enum.IntEnum):

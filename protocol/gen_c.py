@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 
 from protocol.crc import CRC_INIT, CRC_POLY, FRAME_RESIDUE, FRAME_XOROUT
-from protocol.enums import Fault, Inputs, LogLevel, NakCode, State, Stream
+from protocol.enums import Capability, Fault, Inputs, LogLevel, NakCode, State, Stream
 from protocol.params import PARAMS
 from protocol.schema import (
     CRC_SIZE,
@@ -21,6 +21,7 @@ from protocol.schema import (
     PROTOCOL_VERSION,
     SCHEMA,
     TEXT,
+    FieldSpec,
     Flag,
     MessageSpec,
     WireType,
@@ -34,6 +35,7 @@ ENUMS: tuple[type[enum.IntEnum] | type[enum.IntFlag], ...] = (
     Stream,
     Inputs,
     LogLevel,
+    Capability,
 )
 
 
@@ -130,6 +132,8 @@ def _message_block(spec: MessageSpec) -> str:
     ]
     if spec.has_text:
         lines.append(f"#define {upper}_TEXT_MAX {spec.max_text}u")
+    if spec.records is not None:
+        return "\n".join(lines) + "\n" + _batch_block(spec, base, upper)
     lines.append(_struct(spec, base, upper))
     lines.append(_encoder(spec, base, upper))
     lines.append(_decoder(spec, base, upper))
@@ -224,12 +228,114 @@ def _range_check(base: str, spec: MessageSpec) -> str:
     )
 
 
+def _batch_block(spec: MessageSpec, base: str, upper: str) -> str:
+    """A batch: its record struct, then struct, encode, decode and range check of the message."""
+    rec = spec.records
+    assert rec is not None
+    rbase = f"orb_{rec.name.lower()}"
+    count, items = f"{rec.field_name}_count", rec.field_name
+    rmax, rsize = f"{upper}_{rec.field_name.upper()}_MAX", f"ORB_{rec.name}_SIZE"
+    head = [
+        f"#define {rmax} {rec.max_count}u",
+        f"#define {rsize} {rec.size}u",
+        f"/* {rec.name}: {rec.cls.__doc__ or ''} */",
+        "typedef struct {",
+        *_members(rec.fields),
+        f"}} {rbase}_t;\n",
+        "typedef struct {",
+        *_members(spec.fields),
+        f"    uint8_t {count}; /**< records used in {items} */",
+        f"    {rbase}_t {items}[{rmax}]; /**< {rec.doc} */",
+        f"}} {base}_t;\n",
+    ]
+    put, get, offset = [], [], 0
+    for f in spec.fields:
+        put.append(f"    orb_put_{f.wire.name}(buf + {offset}, m->{f.name});")
+        get.append(f"    m->{f.name} = orb_get_{f.wire.name}(buf + {offset});")
+        offset += f.wire.size
+    rput, rget, offset = [], [], 0
+    for f in rec.fields:
+        rput.append(f"        orb_put_{f.wire.name}(p + {offset}, r->{f.name});")
+        rget.append(f"        r->{f.name} = orb_get_{f.wire.name}(p + {offset});")
+        offset += f.wire.size
+    encode = [
+        f"static inline size_t {base}_encode(const {base}_t *m, uint8_t *buf)\n{{",
+        "    size_t i;",
+        f"    if (m->{count} > {rmax}) return 0u;",
+        *put,
+        f"    for (i = 0; i < m->{count}; i++) {{",
+        f"        uint8_t *p = buf + {upper}_SIZE + i * {rsize};",
+        f"        const {rbase}_t *r = &m->{items}[i];",
+        *rput,
+        "    }",
+        f"    return {upper}_SIZE + (size_t)m->{count} * {rsize};\n}}\n",
+    ]
+    decode = [
+        f"static inline int {base}_decode({base}_t *m, const uint8_t *buf, size_t len)\n{{",
+        "    size_t i, n;",
+        f"    if (len < {upper}_SIZE || (len - {upper}_SIZE) % {rsize} != 0u) return -1;",
+        f"    n = (len - {upper}_SIZE) / {rsize};",
+        f"    if (n > {rmax}) return -1;",
+        *get,
+        f"    m->{count} = (uint8_t)n;",
+        "    for (i = 0; i < n; i++) {",
+        f"        const uint8_t *p = buf + {upper}_SIZE + i * {rsize};",
+        f"        {rbase}_t *r = &m->{items}[i];",
+        *rget,
+        "    }",
+        "    return 0;\n}\n",
+    ]
+    rterms = _bound_terms("r->", rec.fields)
+    check = [
+        f"static inline int {base}_in_range(const {base}_t *m)\n{{",
+        "    size_t i;",
+        f"    if (m->{count} > {rmax}) return 0;",
+    ]
+    terms = _bound_terms("m->", spec.fields)
+    if terms:
+        check.append(f"    if (!({' && '.join(terms)})) return 0;")
+    check.append(f"    for (i = 0; i < m->{count}; i++) {{")
+    if rterms:
+        check.append(f"        const {rbase}_t *r = &m->{items}[i];")
+        check.append(f"        if (!({' && '.join(rterms)})) return 0;")
+    check += ["    }", "    return 1;\n}\n"]
+    return "\n".join(head + encode + decode + check)
+
+
+def _members(fields: tuple[FieldSpec, ...]) -> list[str]:
+    """Struct members of integer fields, each with its unit and meaning."""
+    out = []
+    for f in fields:
+        unit = f" [{f.info.unit}]" if f.info.unit else ""
+        out.append(f"    {f.wire.c_type} {f.name}; /**<{unit} {f.info.doc} */")
+    return out
+
+
+def _bound_terms(prefix: str, fields: tuple[FieldSpec, ...]) -> list[str]:
+    """Range tests of the bounds narrower than each field's type (others are always true)."""
+    terms = []
+    for f in fields:
+        lo, hi = f.info.bounds()
+        if lo != f.wire.lo:
+            terms.append(f"{prefix}{f.name} >= {c_int(lo, f.wire)}")
+        if hi != f.wire.hi:
+            terms.append(f"{prefix}{f.name} <= {c_int(hi, f.wire)}")
+    return terms
+
+
 def _payload_check() -> str:
     """Generic length/text check by id, used by the frame decoder to count bad payloads."""
     cases = []
     for spec in SCHEMA.specs():
         upper = f"ORB_{spec.name}"
-        if spec.has_text:
+        if spec.records is not None:
+            rsize = f"ORB_{spec.records.name}_SIZE"
+            rmax = f"{upper}_{spec.records.field_name.upper()}_MAX"
+            cond = (
+                f"len >= {upper}_SIZE && (len - {upper}_SIZE) % {rsize} == 0u &&\n"
+                f"                (len - {upper}_SIZE) / {rsize} <= {rmax}"
+            )
+        elif spec.has_text:
             cond = (
                 f"({f'len >= {upper}_SIZE && ' if spec.fixed_size else ''}"
                 f"len <= {upper}_SIZE + {upper}_TEXT_MAX &&\n"

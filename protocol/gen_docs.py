@@ -28,7 +28,7 @@ from protocol.schema import (
     MessageSpec,
 )
 
-EXAMPLE_MESSAGES = ("MOVE_TO", "ENCODER_SAMPLE")
+EXAMPLE_MESSAGES = ("MOVE_TO", "ENCODER_SAMPLE", "ENCODER_BATCH")
 _MEMBER_RE = re.compile(r"^\s+([A-Z_0-9]+)\s*=\s*[^#]+#\s*(.+)$")
 
 
@@ -85,7 +85,8 @@ def _summary() -> str:
     """One row per message."""
     rows = []
     for s in SCHEMA.specs():
-        size = f"{s.fixed_size}" + (f"..{s.fixed_size + s.max_text}" if s.has_text else "")
+        variable = s.has_text or s.records is not None
+        size = f"{s.fixed_size}" + (f"..{s.max_size}" if variable else "")
         acked = "yes" if s.acked else "no"
         rows.append(
             [
@@ -120,7 +121,27 @@ def _messages() -> str:
             out.append("No payload.\n")
             continue
         out.append(_field_table(s))
+        if s.records is not None:
+            out.append(_records_table(s))
     return "\n".join(out)
+
+
+def _records_table(spec: MessageSpec) -> str:
+    """The repeated tail of a batch: how many records, then one record's layout."""
+    rec = spec.records
+    assert rec is not None
+    intro = (
+        f"Then `{rec.field_name}`, {rec.doc}: 0..{rec.max_count} {rec.name} records of "
+        f"{rec.size} bytes to the payload's end, their number (payload bytes − "
+        f"{spec.fixed_size}) / {rec.size}; offsets within each record:\n"
+    )
+    rows, offset = [], 0
+    for f in rec.fields:
+        lo, hi = f.info.bounds()
+        rng = f"{lo}..{hi}" + (f" ({f.info.enum.__name__})" if f.info.enum is not None else "")
+        rows.append([str(offset), f.name, f.wire.name, f.info.unit, rng, f.info.doc])
+        offset += f.wire.size
+    return intro + "\n" + _table(["offset", "field", "type", "unit", "range", "meaning"], rows)
 
 
 def _field_table(spec: MessageSpec) -> str:
@@ -186,7 +207,9 @@ def _examples(vectors: list[dict[str, Any]]) -> str:
 def _example(spec: MessageSpec, vec: dict[str, Any]) -> str:
     """One worked example: fields, header, payload field by field, CRC, raw, COBS, wire."""
     raw = bytes.fromhex(vec["raw_hex"])
-    fields = ", ".join(f"{k}={v}" for k, v in vec["fields"].items())
+    fields = ", ".join(f"{k}={v}" for k, v in vec["fields"].items() if not isinstance(v, list))
+    if spec.records is not None:
+        fields += f", {len(vec['fields'][spec.records.field_name])} {spec.records.name} records"
     rows = [
         ["0", "version", _hex(raw[0:1]), f"{raw[0]}"],
         ["1", "flags", _hex(raw[1:2]), f"0x{vec['flags']:02X}"],
@@ -205,6 +228,14 @@ def _example(spec: MessageSpec, vec: dict[str, Any]) -> str:
             ]
         )
         offset += size
+    rec = spec.records
+    for i, item in enumerate(vec["fields"][rec.field_name] if rec is not None else ()):
+        assert rec is not None
+        for f in rec.fields:
+            size = f.wire.size
+            part = f"{rec.field_name}[{i}].{f.name} ({f.wire.name}{' LE' if size > 1 else ''})"
+            rows.append([str(offset), part, _hex(raw[offset : offset + size]), str(item[f.name])])
+            offset += size
     rows.append([str(offset), "crc16 (BE)", _hex(raw[offset:]), vec["crc"]])
     enc = cobs.encode(raw)
     return (

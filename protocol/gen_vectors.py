@@ -27,6 +27,13 @@ from protocol.schema import (
     MessageSpec,
 )
 
+
+def _step(dt_us: int, encoder: int, step: int, velocity: int, inputs: int) -> dict[str, int]:
+    """One ENCODER_STEP record's values."""
+    keys = ("dt_us", "encoder_step", "step_step", "velocity_step", "inputs")
+    return dict(zip(keys, (dt_us, encoder, step, velocity, inputs), strict=True))
+
+
 # Hand-picked traffic for the messages the spec walks through; others get seeded random values.
 TYPICAL: dict[str, dict[str, Any]] = {
     "HELLO": {
@@ -55,6 +62,19 @@ TYPICAL: dict[str, dict[str, Any]] = {
         "cmd_seq": 0x0111,
     },
     "LOG": {"level": 1, "text": "homed: index at 15720 counts"},
+    # 100 Hz at 100 mm/s: 15.7 counts and 12.6 steps per 10 ms; the index passes at sample 3.
+    "ENCODER_BATCH": {
+        "mcu_time_us": 123_456_789,
+        "encoder_count": 15_720,
+        "step_count": 12_576,
+        "velocity_counts_s": 1_575,
+        "inputs": 0x10,
+        "steps": [
+            _step(10_000, 16, 13, 2, 0x10),
+            _step(10_001, 15, 12, -3, 0x12),
+            _step(9_999, 16, 13, 1, 0x10),
+        ],
+    },
 }
 LOG_MAX_CHAR = "µ"  # two UTF-8 bytes: the boundary text fills max_text with multi-byte characters
 TYPICAL_SEQ_BASE = 0x0100
@@ -68,13 +88,42 @@ VECTOR_FILE_COMMENT = (
 
 
 def instances(spec: MessageSpec) -> list[tuple[str, dict[str, Any]]]:
-    """(case, field values) for the typical, minimum and maximum instance of one message."""
-    typical = TYPICAL.get(spec.name) or _random_values(spec, random.Random(spec.id))
-    return [
+    """(case, field values) for the typical, minimum and maximum instance of one message.
+
+    A batch's `min` has no records (a batch of one sample) and its `max` every record at the
+    top of its range; `full_min` fills it with records at the bottom (the largest negative
+    steps), and `wrap` crosses the 32-bit MCU time inside the batch.
+    """
+    rng = random.Random(spec.id)
+    typical = TYPICAL.get(spec.name) or _random_values(spec, rng)
+    cases = [
         ("typical", typical),
         ("min", {f.name: _edge(spec, f, low=True) for f in spec.fields}),
         ("max", {f.name: _edge(spec, f, low=False) for f in spec.fields}),
     ]
+    rec = spec.records
+    if rec is None:
+        return cases
+    if rec.field_name not in typical:
+        typical[rec.field_name] = [_random_record(rec.fields, rng) for _ in range(3)]
+    cases[1][1][rec.field_name] = []
+    top = {f.name: f.info.bounds()[1] for f in rec.fields}
+    bottom = {f.name: f.info.bounds()[0] for f in rec.fields}
+    cases[2][1][rec.field_name] = [dict(top) for _ in range(rec.max_count)]
+    full_min: dict[str, Any] = {f.name: _edge(spec, f, low=True) for f in spec.fields}
+    full_min[rec.field_name] = [dict(bottom) for _ in range(rec.max_count)]
+    wrap = dict(typical, mcu_time_us=0xFFFF_FFFF - 15_000)
+    wrap[rec.field_name] = [dict(r, dt_us=10_000) for r in typical[rec.field_name]]
+    return [*cases, ("full_min", full_min), ("wrap", wrap)]
+
+
+def build(spec: MessageSpec, values: dict[str, Any]) -> object:
+    """A message from vector field values (a batch's records given as a list of dicts)."""
+    rec = spec.records
+    if rec is None:
+        return spec.cls(**values)
+    items = tuple(rec.cls(**r) for r in values[rec.field_name])
+    return spec.cls(**{**values, rec.field_name: items})
 
 
 def header_of(spec: MessageSpec, case: str) -> tuple[int, int]:
@@ -85,13 +134,14 @@ def header_of(spec: MessageSpec, case: str) -> tuple[int, int]:
     if case == "max":
         retransmit = Flag.RETRANSMIT if spec.acked else Flag.NONE
         return 0xFFFF, int(acked | retransmit)
-    return TYPICAL_SEQ_BASE + spec.id, int(acked)
+    extra = {"full_min": 0x1000, "wrap": 0x2000}.get(case, 0)
+    return TYPICAL_SEQ_BASE + spec.id + extra, int(acked)
 
 
 def vector(spec: MessageSpec, case: str, values: dict[str, Any]) -> dict[str, Any]:
     """One vector: fields, header, payload, raw frame, CRC and wire bytes."""
     seq, flags = header_of(spec, case)
-    msg = spec.cls(**values)
+    msg = build(spec, values)
     _, payload = encode_payload(msg)
     header = struct.pack(HEADER_FORMAT, PROTOCOL_VERSION, flags, seq, spec.id)
     crc = frame_crc(header + payload)
@@ -183,6 +233,11 @@ def _edge(spec: MessageSpec, f: FieldSpec, *, low: bool) -> int | str:
         return "" if low else LOG_MAX_CHAR * (spec.max_text // len(LOG_MAX_CHAR.encode()))
     lo, hi = f.info.bounds()
     return lo if low else hi
+
+
+def _random_record(fields: tuple[FieldSpec, ...], rng: random.Random) -> dict[str, int]:
+    """Seeded in-range values of one record."""
+    return {f.name: rng.randint(*f.info.bounds()) for f in fields}
 
 
 def _random_values(spec: MessageSpec, rng: random.Random) -> dict[str, Any]:

@@ -10,7 +10,19 @@ from __future__ import annotations
 from typing import Annotated
 
 from protocol.enums import Capability, Fault, Inputs, LogLevel, NakCode, State, Stream
-from protocol.schema import I32, TEXT, U8, U16, U32, Direction, field, message
+from protocol.schema import (
+    I16,
+    I32,
+    TEXT,
+    U8,
+    U16,
+    U32,
+    Direction,
+    field,
+    message,
+    record,
+    records,
+)
 
 H2C = Direction.TO_CONTROLLER
 C2H = Direction.TO_HOST
@@ -317,3 +329,89 @@ class Log:
 
     level: Annotated[int, field(U8, "", "severity", hi=max(LogLevel), enum=LogLevel)]
     text: Annotated[str, field(TEXT, "", f"UTF-8, at most {LOG_TEXT_MAX} bytes, to frame end")]
+
+
+# ---- batched telemetry (Capability.BATCHED_TELEMETRY; PROTOCOL.md §14) ----------------------
+#
+# A batch carries its first sample in full, then one record per further sample holding the
+# steps from the sample before it: sample k = sample k−1 + step k (times mod 2³²). A step that
+# does not fit its record's type ends the batch; the sample then starts the next one.
+
+TimeStep = Annotated[
+    int, field(U16, "µs", "mcu_time_us minus the previous sample's, mod 2³²", lo=1)
+]
+ENCODER_STEPS_MAX = 6
+RANGE_STEPS_MAX = 13
+HEAD_STEPS_MAX = 10
+
+
+@record
+class EncoderStep:
+    """One further ENCODER_SAMPLE of a batch, as steps from the sample before it."""
+
+    dt_us: TimeStep
+    encoder_step: Annotated[int, field(I16, "counts", "encoder_count minus the previous one")]
+    step_step: Annotated[int, field(I16, "steps", "step_count minus the previous one")]
+    velocity_step: Annotated[
+        int, field(I16, "counts/s", "velocity_counts_s minus the previous one")
+    ]
+    inputs: Annotated[int, field(U8, "", "this sample's inputs", hi=_ALL_INPUTS, enum=Inputs)]
+
+
+@record
+class RangeStep:
+    """One further RANGE_SAMPLE of a batch, as steps from the sample before it."""
+
+    dt_us: TimeStep
+    distance_step: Annotated[int, field(I16, "µm", "distance_um minus the previous one")]
+    quality: Annotated[int, field(U8, "", "this sample's quality")]
+
+
+@record
+class HeadStep:
+    """One further HEAD_SAMPLE of a batch, as steps from the sample before it."""
+
+    dt_us: TimeStep
+    pan_step: Annotated[int, field(I16, "µrad", "pan_urad minus the previous one")]
+    tilt_step: Annotated[int, field(I16, "µrad", "tilt_urad minus the previous one")]
+
+
+@message(0x96, C2H)
+class EncoderBatch:
+    """Up to 7 ENCODER_SAMPLEs: the first in full, the others as steps (records to frame end)."""
+
+    mcu_time_us: McuTime
+    encoder_count: Annotated[int, field(I32, "counts", "quadrature count since home")]
+    step_count: Annotated[int, field(I32, "steps", "steps commanded since home")]
+    velocity_counts_s: Annotated[int, field(I32, "counts/s", "measured encoder velocity")]
+    inputs: Annotated[int, field(U8, "", "input and position flags", hi=_ALL_INPUTS, enum=Inputs)]
+    steps: Annotated[
+        tuple[EncoderStep, ...],
+        records(EncoderStep, ENCODER_STEPS_MAX, "the further samples, oldest first"),
+    ] = ()
+
+
+@message(0x97, C2H)
+class RangeBatch:
+    """Up to 14 RANGE_SAMPLEs: the first in full, the others as steps (records to frame end)."""
+
+    mcu_time_us: McuTime
+    distance_um: Annotated[int, field(U32, "µm", "measured distance; 0 when invalid")]
+    quality: Annotated[int, field(U8, "", "0 = no echo or out of range, 255 = best")]
+    steps: Annotated[
+        tuple[RangeStep, ...],
+        records(RangeStep, RANGE_STEPS_MAX, "the further samples, oldest first"),
+    ] = ()
+
+
+@message(0x98, C2H)
+class HeadBatch:
+    """Up to 11 HEAD_SAMPLEs: the first in full, the others as steps (records to frame end)."""
+
+    mcu_time_us: McuTime
+    pan_urad: Annotated[int, field(I32, "µrad", "measured pan")]
+    tilt_urad: Annotated[int, field(I32, "µrad", "measured tilt")]
+    steps: Annotated[
+        tuple[HeadStep, ...],
+        records(HeadStep, HEAD_STEPS_MAX, "the further samples, oldest first"),
+    ] = ()

@@ -19,6 +19,9 @@ class ParamId(enum.IntEnum):
     HOME_SPEED_UM_S = 8
     HOME_OFFSET_UM = 9
     HOMING_TRAVEL_UM = 10
+    ENCODER_BATCH_AGE_MS = 11
+    RANGE_BATCH_AGE_MS = 12
+    HEAD_BATCH_AGE_MS = 13
 
 
 @dataclass(frozen=True)
@@ -116,6 +119,22 @@ PARAMS: tuple[ParamSpec, ...] = (
         1_000,
         100_000_000,
         "travel after which homing gives up with HOMING_FAILED",
+    ),
+    *(
+        ParamSpec(
+            pid,
+            "ms",
+            default,
+            0,
+            1_000,
+            f"with batched telemetry, a {what} batch is sent once its oldest sample is this old "
+            "(or when full); 0 sends every sample alone",
+        )
+        for pid, default, what in (
+            (ParamId.ENCODER_BATCH_AGE_MS, 20, "ENCODER"),
+            (ParamId.RANGE_BATCH_AGE_MS, 20, "RANGE"),
+            (ParamId.HEAD_BATCH_AGE_MS, 50, "HEAD"),
+        )
     ),
 )
 

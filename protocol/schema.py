@@ -101,6 +101,20 @@ def field(
 
 
 @dataclass(frozen=True)
+class RecordsInfo:
+    """Annotation of a message's trailing run of records: their class, how many, what they are."""
+
+    cls: type[Any]
+    max_count: int
+    doc: str
+
+
+def records(cls: type[Any], max_count: int, doc: str) -> RecordsInfo:
+    """Declare a trailing run of 0..max_count records (used inside `Annotated[tuple[...], ...]`)."""
+    return RecordsInfo(cls, max_count, doc)
+
+
+@dataclass(frozen=True)
 class FieldSpec:
     """One field as the codec and the generators see it."""
 
@@ -111,6 +125,28 @@ class FieldSpec:
     def wire(self) -> WireType:
         """The field's wire type."""
         return self.info.wire
+
+
+@dataclass(frozen=True)
+class RecordSpec:
+    """The repeated tail of a message: `count` records of `fields`, filling the payload's end."""
+
+    field_name: str  # the message attribute holding the tuple of records
+    name: str
+    cls: type[Any]
+    fields: tuple[FieldSpec, ...]
+    max_count: int
+    doc: str
+
+    @property
+    def struct_format(self) -> str:
+        """struct format of one record."""
+        return "<" + "".join(f.wire.code for f in self.fields)
+
+    @property
+    def size(self) -> int:
+        """Bytes of one record."""
+        return struct.calcsize(self.struct_format)
 
 
 @dataclass(frozen=True)
@@ -126,6 +162,13 @@ class MessageSpec:
     fields: tuple[FieldSpec, ...]
     cls: type[Any]
     max_text: int = 0
+    records: RecordSpec | None = None  # a batch's repeated tail; never together with a text
+
+    @property
+    def max_size(self) -> int:
+        """Largest payload: the fixed part plus the longest text or every record."""
+        tail = self.records.max_count * self.records.size if self.records else self.max_text
+        return self.fixed_size + tail
 
     @property
     def struct_format(self) -> str:
@@ -170,15 +213,21 @@ class Schema:
 
         Line 1 `v<version>`; then one line per message in id order,
         `<id>:<NAME>:<acked 0|1>:<reply|None>:<field>,<field>...` with each field written
-        `<name>:<wire type>:<lo>..<hi>[:<Enum>]`; then one line per enum a field names, in
+        `<name>:<wire type>:<lo>..<hi>[:<Enum>]`, a batch's records appended as
+        `;<field>:<RECORD>*0..<max>:<field>,...`; then one line per enum a field names, in
         name order, `<Enum>=<MEMBER>:<value>,...` in value order; lines joined by "\n".
         """
         lines = [f"v{PROTOCOL_VERSION}"]
         enums: dict[str, type[enum.IntEnum] | type[enum.IntFlag]] = {}
         for spec in self.specs():
             cols = ",".join(_canonical_field(f) for f in spec.fields)
+            rec = spec.records
+            if rec is not None:
+                inner = ",".join(_canonical_field(f) for f in rec.fields)
+                cols += f";{rec.field_name}:{rec.name}*0..{rec.max_count}:{inner}"
             lines.append(f"{spec.id}:{spec.name}:{int(spec.acked)}:{spec.reply}:{cols}")
-            enums.update({f.info.enum.__name__: f.info.enum for f in spec.fields if f.info.enum})
+            every = spec.fields + (rec.fields if rec is not None else ())
+            enums.update({f.info.enum.__name__: f.info.enum for f in every if f.info.enum})
         for name in sorted(enums):
             values = {k: int(v.value) for k, v in enums[name].__members__.items()}
             members = sorted(values.items(), key=lambda kv: (kv[1], kv[0]))
@@ -219,30 +268,67 @@ def message(
         dc = dataclasses.dataclass(slots=True)(cls)
         hints = typing.get_type_hints(dc, include_extras=True)
         fields: list[FieldSpec] = []
+        tail: RecordSpec | None = None
         for f in dataclasses.fields(dc):  # type: ignore[arg-type]
-            meta = [
-                m for m in getattr(hints[f.name], "__metadata__", ()) if isinstance(m, FieldInfo)
-            ]
-            if len(meta) != 1:
-                raise TypeError(f"{cls.__name__}.{f.name} needs exactly one field(...) annotation")
-            fields.append(FieldSpec(f.name, meta[0]))
+            meta = getattr(hints[f.name], "__metadata__", ())
+            runs = [m for m in meta if isinstance(m, RecordsInfo)]
+            if runs and tail is None:
+                tail = _record_spec(f.name, runs[0])
+                continue
+            infos = [m for m in meta if isinstance(m, FieldInfo)]
+            if len(infos) != 1 or tail is not None:
+                raise TypeError(
+                    f"{cls.__name__}.{f.name} needs exactly one field(...) annotation, "
+                    "and records(...) only as the last field"
+                )
+            fields.append(FieldSpec(f.name, infos[0]))
         doc = (dc.__doc__ or "").strip()
-        SCHEMA.add(
-            MessageSpec(
-                msg_id,
-                _snake(dc.__name__),
-                direction,
-                acked,
-                reply,
-                doc,
-                tuple(fields),
-                dc,
-                max_text,
-            )
+        spec = MessageSpec(
+            msg_id,
+            _snake(dc.__name__),
+            direction,
+            acked,
+            reply,
+            doc,
+            tuple(fields),
+            dc,
+            max_text,
+            tail,
         )
+        if spec.max_size > MAX_PAYLOAD or (tail is not None and spec.has_text):
+            raise TypeError(f"{spec.name}: payload of {spec.max_size} bytes > {MAX_PAYLOAD}")
+        SCHEMA.add(spec)
         return dc
 
     return wrap
+
+
+@typing.dataclass_transform(frozen_default=True)
+def record(cls: type[MessageT]) -> type[MessageT]:
+    """Class decorator for a batch's record: a slotted, frozen dataclass of wire fields."""
+    dc = dataclasses.dataclass(slots=True, frozen=True)(cls)
+    hints = typing.get_type_hints(dc, include_extras=True)
+    fields = []
+    for f in dataclasses.fields(dc):  # type: ignore[arg-type]
+        infos = [m for m in getattr(hints[f.name], "__metadata__", ()) if isinstance(m, FieldInfo)]
+        if len(infos) != 1 or infos[0].wire is TEXT:
+            raise TypeError(f"{cls.__name__}.{f.name} needs exactly one integer field(...)")
+        fields.append(FieldSpec(f.name, infos[0]))
+    _RECORD_FIELDS[dc] = tuple(fields)
+    return dc
+
+
+_RECORD_FIELDS: dict[type[Any], tuple[FieldSpec, ...]] = {}
+
+
+def _record_spec(field_name: str, info: RecordsInfo) -> RecordSpec:
+    """The spec of a message's records from their declared class."""
+    fields = _RECORD_FIELDS.get(info.cls)
+    if fields is None or info.max_count < 1:
+        raise TypeError(f"{info.cls.__name__} is not declared with @record (or max_count < 1)")
+    return RecordSpec(
+        field_name, _snake(info.cls.__name__), info.cls, fields, info.max_count, info.doc
+    )
 
 
 def _snake(camel: str) -> str:

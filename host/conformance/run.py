@@ -12,9 +12,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from host.conformance import checks_link, checks_state  # noqa: F401  (register the checks)
+from host.conformance import (  # noqa: F401  (register the checks)
+    checks_batches,
+    checks_link,
+    checks_state,
+)
 from host.conformance.base import CHECKS, Check, Context, Options
-from host.conformance.wire import ConformanceError, WireClient
+from host.conformance.wire import ConformanceError, NotApplicable, WireClient
 from host.transport import Transport, TransportConfigError, TransportError, transport_from_config
 
 SPEC_PATH = Path(__file__).resolve().parents[2] / "protocol" / "PROTOCOL.md"
@@ -94,6 +98,8 @@ async def _run_one(ctx: Context, chk: Check) -> Outcome:
     try:
         async with asyncio.timeout(CHECK_TIMEOUT_S):
             await chk.fn(ctx)
+    except NotApplicable as exc:
+        return Outcome(chk, "skip", str(exc), time.monotonic() - t0)
     except ConformanceError as exc:
         return Outcome(chk, "fail", str(exc), time.monotonic() - t0)
     except TimeoutError:

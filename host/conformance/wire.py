@@ -30,6 +30,10 @@ class ConformanceError(AssertionError):
     """A controller broke a rule; the message says what was expected and what came."""
 
 
+class NotApplicable(Exception):  # noqa: N818  (a verdict, not an error)
+    """The check tests an optional feature the controller does not offer: reported as skipped."""
+
+
 @dataclass(frozen=True)
 class Received:
     """One controller frame and when it arrived (monotonic seconds)."""

@@ -23,6 +23,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from host.link.batches import BATCH_TYPES, BatchStats, TelemetryPlan, plan_for, unpack
 from host.link.common import (
     LinkError,
     LinkEvent,
@@ -54,7 +55,7 @@ from host.link.shedding import Shedder, SheddingConfig
 from host.link.snapshot import ControllerChange, Identity, Listener, Snapshot
 from host.transport.base import Transport
 from protocol import Packet
-from protocol.enums import Fault, Inputs, State, Stream
+from protocol.enums import Capability, Fault, Inputs, State, Stream
 from protocol.messages import (
     ClearFault,
     EncoderSample,
@@ -125,8 +126,10 @@ class Controller:
     shedding: SheddingConfig | None = None  # None: the streams always run at the rates asked for
     track_window: TrackWindow | None = None  # an open track: limits motion and soft limits
     streams_hz: Mapping[Stream, int] = field(default_factory=dict)  # on at every handshake
+    telemetry_plan: TelemetryPlan | None = None  # batch ages per link; None: by transport scheme
 
     def __post_init__(self) -> None:
+        self.telemetry_plan = self.telemetry_plan or plan_for(self.transport.scheme)
         self.session = Session(self.transport, self.session_config, on_packet=self._on_packet)
         self.supervisor = Supervisor(
             self.session,
@@ -140,6 +143,7 @@ class Controller:
         self.encoder_ring: deque[tuple[int, float, float, int]] = deque(maxlen=RING_SAMPLES)
         self.unsynced_samples = 0  # samples dropped before the clock sync had a probe
         self.sink_errors = 0  # samples a sink raised on (logged, then ignored)
+        self.batch_stats = BatchStats()  # samples that came in batches (host.link.batches)
         self._sinks: list[SampleSink] = []
         self._streams: dict[Stream, int] = {Stream.STATUS: STATUS_RATE_HZ, **self.streams_hz}
         self._params: dict[int, int] = {}
@@ -391,12 +395,25 @@ class Controller:
         self.identity = Identity.from_message(ident)
         self._status = None
         self._status_changed.set()  # wake motion waiters: a reboot ends their motions
+        await self._plan_telemetry()
         for stream, rate in self._streams.items():
             await self.session.request(StreamSet(int(stream), self._stream_rate(rate)))
         if rebooted:
             for pid, value in self._params.items():
                 await self.session.request(ParamSet(pid, value))
         await self._sync_soft_limits()
+
+    async def _plan_telemetry(self) -> None:
+        """Batch ages when both sides batch (longer while shedding), else single-sample rates."""
+        plan = self.telemetry_plan
+        if plan is None:
+            return
+        if not self.session.capabilities & Capability.BATCHED_TELEMETRY:
+            self._streams.update(plan.unbatched(self._streams))
+            return
+        scale = 1.0 if self.shedder is None else self.shedder.scale
+        for pid, age_ms in plan.age_params(scale).items():
+            await self.session.request(ParamSet(pid, age_ms))
 
     async def _sync_soft_limits(self) -> None:
         """Keep the controller's soft limits inside an open track; note why when it refuses."""
@@ -446,6 +463,10 @@ class Controller:
                 log.warning("could not rescale %s: %s", stream.name, result)
             elif isinstance(result, BaseException):
                 raise result
+        try:
+            await self._plan_telemetry()  # batches wait longer while shedding: fewer packets
+        except LinkError as exc:
+            log.warning("could not rescale the batch ages: %s", exc)
 
     def _forward_event(self, event: LinkEvent, detail: str) -> None:
         """Pass link events to the user."""
@@ -527,6 +548,9 @@ class Controller:
             self._on_status(msg)
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
             self._on_sample(msg)
+        elif isinstance(msg, BATCH_TYPES):
+            for sample in unpack(msg, self.batch_stats):  # each with its own MCU time
+                self._on_sample(sample)
 
     def _on_sample(self, msg: SampleMessage) -> None:
         """Convert to host time and units; a failing sink is logged, never the link's problem."""

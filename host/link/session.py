@@ -33,6 +33,7 @@ from host.link.common import (
     decode_enum,
     note_unknown,
 )
+from host.link.probe_rate import ProbeRate
 from host.transport.base import Transport, TransportError
 from protocol import (
     PROTOCOL_VERSION,
@@ -43,7 +44,7 @@ from protocol import (
     encode_frame,
     spec_of,
 )
-from protocol.enums import NakCode, State
+from protocol.enums import Capability, NakCode, State
 from protocol.messages import ClockSync as ClockSyncMsg
 from protocol.messages import ClockSyncReply, Estop, Heartbeat, Hello, Identify, Nak, Stop
 
@@ -54,7 +55,8 @@ U32_MOD = 1 << 32
 # A frame with a tiny seq far from the expected one: the controller's counter restarted.
 SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
-HOST_CAPABILITIES = 0  # Capability bits this host offers in HELLO (none yet)
+HOST_CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in HELLO
+PROBE_ALIGN_MAX_S = 0.1  # a probe waits at most this long for a controller frame to follow
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
 RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
@@ -75,6 +77,9 @@ class SessionConfig:
     heartbeat_interval_s: float = 0.1
     dead_after_heartbeats: int = 10  # silence of this many intervals declares the link dead
     clock_sync_interval_s: float = 0.1  # 10 Hz probes; 0 disables clock sync
+    # Once the fit has converged and its error stays small, probes go out this often instead
+    # (host.link.probe_rate); a value ≤ clock_sync_interval_s keeps the steady rate.
+    clock_sync_slow_interval_s: float = 1.0
     # A probe waits until the host has sent nothing for this long (at most one probe interval):
     # written behind another frame it would queue on the line, a delay on the way out only that
     # the estimator cannot tell from link asymmetry. The largest frame takes 7.3 ms at 115200 Bd.
@@ -87,6 +92,8 @@ class SessionConfig:
     # The controller keeps the replies of at least this many × rx_window commands (PROTOCOL.md,
     # "Duplicate suppression"). See Session._window_open for why the factor matters.
     reply_cache_factor: int = 2
+    # Capability bits offered in HELLO; a feature is used when IDENTIFY offers it too.
+    capabilities: int = HOST_CAPABILITIES
 
 
 class RtoEstimator:
@@ -170,6 +177,9 @@ class Session:
     def __post_init__(self) -> None:
         self.stats = LinkStats()
         self.clock = ClockSync()
+        self.probe_rate = ProbeRate(
+            self.config.clock_sync_interval_s, self.config.clock_sync_slow_interval_s
+        )
         self.rto = RtoEstimator(self.config)
         self.identity: Identify | None = None
         self._decoder = FrameDecoder()
@@ -186,6 +196,7 @@ class Session:
         self._cmd_index = 0
         self._slot_waiters: list[asyncio.Future[None]] = []
         self._probes: dict[int, int] = {}  # token → host send time, ns
+        self._frame_in = asyncio.Event()  # a controller frame arrived (probes follow one)
         self._tokens = itertools.count(1)
         self._tasks: list[asyncio.Task[None]] = []
         self._running = False
@@ -237,7 +248,8 @@ class Session:
     async def handshake(self) -> tuple[Identify, bool]:
         """HELLO → IDENTIFY; returns it and whether the boot id changed (controller reset)."""
         self._window = 1
-        hello = Hello(PROTOCOL_VERSION, SCHEMA_HASH, HOST_CAPABILITIES, self._session_id)
+        offered = self.config.capabilities
+        hello = Hello(PROTOCOL_VERSION, SCHEMA_HASH, offered, self._session_id)
         packet = await self.request(hello, max_tries=self.config.handshake_tries)
         ident = packet.message
         assert isinstance(ident, Identify)
@@ -249,11 +261,12 @@ class Session:
         rebooted = self.identity is not None and self.identity.boot_id != ident.boot_id
         if rebooted or self.identity is None:
             self.clock = ClockSync(ident.mcu_clock_hz or 1_000_000)
+            self.probe_rate.reset()
         if rebooted:
             self.stats.controller_resets += 1
         self.identity = ident
         # A feature is used only when both sides offer it (issue 16 negotiates with these bits).
-        self.capabilities = HOST_CAPABILITIES & ident.capabilities
+        self.capabilities = offered & ident.capabilities
         cache = self.config.reply_cache_factor * ident.rx_window
         self._window = max(1, min(ident.rx_window, (cache + 1) // 2))
         self._peer_uptime_ms = None
@@ -436,6 +449,7 @@ class Session:
             if self._rx_seq.see(packet.seq, self.stats):
                 self._emit(LinkEvent.RESET_SUSPECTED, f"controller seq restarted at {packet.seq}")
             self._last_rx_s = asyncio.get_running_loop().time()
+            self._frame_in.set()
             self._dispatch(packet)
         if self._decoder.drops.unknown_id != unknown_ids:
             note_unknown("message id", self._decoder.last_unknown_id or 0)
@@ -504,6 +518,7 @@ class Session:
             return
         self.stats.clock_replies += 1
         t1_ns = self.transport.rx_time_ns or time.monotonic_ns()  # its chunk's arrival (recorded)
+        self.probe_rate.check_reply(self.clock, sent_ns, msg.mcu_time_us, t1_ns)
         self.clock.add_probe(sent_ns, msg.mcu_time_us, t1_ns, msg.rx_time_us)
 
     def _emit(self, event: LinkEvent, detail: str) -> None:
@@ -534,10 +549,26 @@ class Session:
         cfg = self.config
         loop = asyncio.get_running_loop()
         while self._running:
-            await asyncio.sleep(cfg.clock_sync_interval_s)
+            # Fast until the fit converges, slow while its error stays small (probe_rate).
+            rate = self.probe_rate
+            rate.fast_s, rate.slow_s = cfg.clock_sync_interval_s, cfg.clock_sync_slow_interval_s
+            interval_s = rate.interval_s(self.clock, time.monotonic_ns())
+            wake = loop.time() + interval_s
+            while (left := wake - loop.time()) > 0 and self._running:
+                await asyncio.sleep(min(left, cfg.clock_sync_interval_s))
+                if not rate.slow:
+                    break  # a controller reset restarted the fit: probe at once
+            # Right after a controller frame arrived, its side of the link has just sent what it
+            # had: the reply then likely finds the way back (a radio module's buffer) empty.
+            # (Only while frames flow: a quiet link has nothing to wait for.)
+            self._frame_in.clear()
+            align_s = min(PROBE_ALIGN_MAX_S, cfg.clock_sync_interval_s)
+            if loop.time() - self._last_rx_s < align_s:
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._frame_in.wait(), align_s)
             # On a line just written to (the heartbeat loop wakes at the same rate), wait until
             # the host's previous frame has left.
-            give_up = loop.time() + cfg.clock_sync_interval_s
+            give_up = loop.time() + min(interval_s, cfg.clock_sync_interval_s)
             while (wait := self._last_tx_s + cfg.clock_probe_quiet_s - loop.time()) > 0:
                 if loop.time() + wait > give_up:
                     break

@@ -17,6 +17,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from host.link.batches import BATCH_TYPES, unpack
 from host.link.clocksync import ClockSync
 from host.link.samples import EncoderReading, SampleMessage, SampleSink, reading
 from host.link.snapshot import Identity
@@ -115,6 +116,9 @@ class LinkReplay:
                 self.stats.probes_used += 1
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
             self._on_sample(msg)
+        elif isinstance(msg, BATCH_TYPES):
+            for sample in unpack(msg):  # batched telemetry: each sample with its own MCU time
+                self._on_sample(sample)
 
     def _on_identify(self, msg: Identify) -> None:
         """A handshake: a new boot id (or the first one) restarts the clock fit."""

@@ -32,6 +32,7 @@ from host.geometry.model import Wireframe, load_model, manipulator_wireframe
 from host.geometry.track import Track
 from host.geometry.transforms import FloatArray
 from host.link import Controller
+from host.link.batches import plan_for
 from host.link.common import LinkEvent
 from host.link.limits import TrackWindow
 from host.link.reconnect import BackoffConfig
@@ -54,33 +55,44 @@ log = logging.getLogger(__name__)
 # Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN),
 # leaving room for commands, their replies and retransmissions.
 #
-# XBee budget. The air carries ~35 kbit/s = 4375 B/s, for both directions (one half-duplex
-# channel), and each wire frame is one RF packet with 18 bytes of air overhead, so a packet costs
-# its frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44, RANGE_SAMPLE 36, HEAD_SAMPLE 39, STATUS 43. The
-# session's 10 Hz clock sync costs 10 × (41 + 41) = 820 B/s (9 % each way, 19 %) whatever the
-# streams. Without ranging: 30 × 44 + 10 × 39 + 2 × 43 + 820 = 2616 B/s = 60 %; with ranging:
-# 25 × 44 + 15 × 36 + 10 × 39 + 2 × 43 + 820 = 2936 B/s = 67 %. The rest carries commands (a
-# full window of 8 MOVE_TO and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries. Beyond
-# the air's rate a module's 202-byte buffer overflows and loses replies as often as telemetry:
-# 100 Hz encoder beside the clock sync (4400 + 820 B/s) is more than the air carries (the
-# transport benchmark's 100 Hz is encoder alone, without probes or other streams); the daemon sheds
-# telemetry on XBee when that happens (`XBEE_SHEDDING`). The rates' floors: 25 Hz encoder keeps
-# a sample within 40 ms of any instant (horizon 50 ms), 10 Hz head within 100 ms (horizon
-# 150 ms); STATUS is also sent on every state change.
+# XBee budget. The air carries ~35 kbit/s = 4375 B/s for both directions (one half-duplex
+# channel), and each wire frame is one RF packet with 18 bytes of air overhead. Alone, a sample
+# costs its frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44 B, so 100 Hz of it would nearly fill the
+# air by itself. With batched telemetry (both sides offer it in the handshake) a packet carries a
+# stream's samples of up to its batch age (host.link.batches.BATCH_AGES_MS): its first sample in
+# full, then 9 B (encoder) or 5 B (range) per further one. At the rates below, per second:
+# encoder 100 Hz, age 40 ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, 4 a
+# batch: 12.5 × (33 + 18) = 637 B; head 10 Hz alone (its 100 ms step exceeds a record's 65 ms):
+# 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) = 90 B. The clock sync's probe pairs cost
+# 2 × (23 + 18) = 82 B per Hz: 10 Hz (820 B/s, 19 %) until the fit converges, then 1 Hz
+# (host.link.probe_rate). Converged that is 2799 B/s = 64 % of the air with ranging (encoder and
+# head only: 2162 B/s = 49 %); converging, 3537 B/s = 81 % for the first ~20 s, which the
+# modules' buffers ride out at some loss. The rest carries commands (a full window of 8 MOVE_TO
+# and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries; tests/service/test_stream_budget.py
+# redoes the sum with the firmware's own batcher. Beyond the air's rate a module's 202-byte
+# buffer overflows and loses replies as often as telemetry; the daemon then sheds telemetry on
+# XBee (`XBEE_SHEDDING`), slowing the streams and lengthening the batch ages together. The price
+# of batching is age: an encoder sample waits up to 40 ms for its batch, then ~25 ms on the way.
+# A controller that does not batch gets the single-sample budget instead
+# (host.link.batches.SINGLE_SAMPLE_RATES_HZ): without ranging 30 × 44 + 10 × 39 + 2 × 45 + 820
+# = 2620 B/s = 60 %, with ranging 25 × 44 + 15 × 36 + 10 × 39 + 2 × 45 + 820 = 67 %. The
+# rates' floors: 25 Hz encoder keeps a sample within 40 ms of any instant (horizon 50 ms), 10 Hz
+# head within 100 ms (horizon 150 ms); STATUS is also sent on every state change.
 STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 200, Stream.HEAD: 50, Stream.STATUS: 20},
-    "xbee": {Stream.ENCODER: 30, Stream.HEAD: 10, Stream.STATUS: 2},
+    "xbee": {Stream.ENCODER: 100, Stream.HEAD: 10, Stream.STATUS: 2},
     "can": {Stream.ENCODER: 500, Stream.HEAD: 100, Stream.STATUS: 20},
 }
 # With surveyed surfaces every reading is a drift fix, and the sooner one follows a tooth skip
 # the fewer frames carry it. The rangefinder takes what each link has room for:
 # - serial: the encoder yields half its rate (100 Hz still interpolates a move to ~0.01 mm),
-#   which leaves the line at ~67 % instead of ~74 % with 200 Hz encoder and 100 Hz range;
-# - XBee: 15 Hz, the encoder yielding 5 Hz (budget above);
+#   which leaves the line at ~67 % instead of ~74 % with 200 Hz encoder and 100 Hz range
+#   (single samples; 5 ms batches take less);
+# - XBee: 50 Hz beside 100 Hz encoder, in batches (budget above);
 # - CAN (500 kbit/s): 250 + 250 Hz is ~55 % of the bus, where 500 + 500 Hz would saturate it.
 RANGING_RATES_HZ: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 100, Stream.RANGE: 200},
-    "xbee": {Stream.ENCODER: 25, Stream.RANGE: 15},
+    "xbee": {Stream.ENCODER: 100, Stream.RANGE: 50},
     "can": {Stream.ENCODER: 250, Stream.RANGE: 250},
 }
 
@@ -89,12 +101,17 @@ RANGING_RATES_HZ: dict[str, dict[Stream, int]] = {
 XBEE_SHEDDING = SheddingConfig()
 
 
-def stream_rates(kind: str, ranging: bool) -> dict[Stream, int]:
-    """Telemetry rates for a link kind, with the rangefinder when its readings are used."""
+def stream_rates(kind: str, ranging: bool, batched: bool = True) -> dict[Stream, int]:
+    """Telemetry rates for a link kind, with the rangefinder when its readings are used.
+
+    `batched`: whether the controller batches telemetry (the session agreed on it); a link whose
+    single-sample budget differs has its own rates then (host.link.batches).
+    """
     rates = dict(STREAM_RATES_HZ[kind])
     if ranging:
         rates.update(RANGING_RATES_HZ[kind])
-    return rates
+    plan = plan_for(kind)
+    return rates if batched or plan is None else plan.unbatched(rates)
 
 
 ENCODER_HORIZON_NS = 50_000_000  # carry the trolley forward at most 50 ms past its last sample
@@ -181,6 +198,7 @@ def controller_factory(
         shedding=shedding,
         track_window=track_window(config),
         streams_hz=config_stream_rates(config),
+        telemetry_plan=plan_for(config.link.kind),
     )
     ctrl.add_sink(RecordingSink(record_tap))
     ctrl.add_stats(lambda: clock_stats(ctrl))

@@ -17,7 +17,7 @@
 #include <string.h>
 
 #define ORB_PROTOCOL_VERSION 2u
-#define ORB_SCHEMA_HASH UINT32_C(0x5FE17393)
+#define ORB_SCHEMA_HASH UINT32_C(0xF333A4DD)
 #define ORB_HEADER_SIZE 5u
 #define ORB_CRC_SIZE 2u
 #define ORB_MAX_WIRE_FRAME 84u /* encoded bytes plus the 0x00 delimiter */
@@ -93,6 +93,11 @@ typedef enum {
     ORB_LOG_LEVEL_ERROR = 3
 } orb_log_level_t;
 
+typedef enum {
+    ORB_CAPABILITY_NONE = 0,
+    ORB_CAPABILITY_BATCHED_TELEMETRY = 1
+} orb_capability_t;
+
 /* ---- parameters (protocol/params.py): id, default, min, max ---- */
 /* host silence that triggers a controlled stop and a WATCHDOG fault (ms) */
 #define ORB_PARAM_WATCHDOG_MS 1u
@@ -144,7 +149,22 @@ typedef enum {
 #define ORB_PARAM_HOMING_TRAVEL_UM_DEFAULT INT32_C(20000000)
 #define ORB_PARAM_HOMING_TRAVEL_UM_MIN INT32_C(1000)
 #define ORB_PARAM_HOMING_TRAVEL_UM_MAX INT32_C(100000000)
-#define ORB_PARAM_COUNT 10u
+/* with batched telemetry, a ENCODER batch is sent once its oldest sample is this old (or when full); 0 sends every sample alone (ms) */
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS 11u
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS_DEFAULT INT32_C(20)
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS_MIN INT32_C(0)
+#define ORB_PARAM_ENCODER_BATCH_AGE_MS_MAX INT32_C(1000)
+/* with batched telemetry, a RANGE batch is sent once its oldest sample is this old (or when full); 0 sends every sample alone (ms) */
+#define ORB_PARAM_RANGE_BATCH_AGE_MS 12u
+#define ORB_PARAM_RANGE_BATCH_AGE_MS_DEFAULT INT32_C(20)
+#define ORB_PARAM_RANGE_BATCH_AGE_MS_MIN INT32_C(0)
+#define ORB_PARAM_RANGE_BATCH_AGE_MS_MAX INT32_C(1000)
+/* with batched telemetry, a HEAD batch is sent once its oldest sample is this old (or when full); 0 sends every sample alone (ms) */
+#define ORB_PARAM_HEAD_BATCH_AGE_MS 13u
+#define ORB_PARAM_HEAD_BATCH_AGE_MS_DEFAULT INT32_C(50)
+#define ORB_PARAM_HEAD_BATCH_AGE_MS_MIN INT32_C(0)
+#define ORB_PARAM_HEAD_BATCH_AGE_MS_MAX INT32_C(1000)
+#define ORB_PARAM_COUNT 13u
 
 /* ---- little-endian field access by shifts ---- */
 static inline void orb_put_u8(uint8_t *p, uint8_t v) { p[0] = v; }
@@ -1065,6 +1085,223 @@ static inline int orb_ref_mark_in_range(const orb_ref_mark_t *m)
     return 1;
 }
 
+/* ---- ENCODER_BATCH (0x96, controller → host): Up to 7 ENCODER_SAMPLEs: the first in full, the others as steps (records to frame end). */
+#define ORB_MSG_ENCODER_BATCH 0x96u
+#define ORB_ENCODER_BATCH_SIZE 17u
+#define ORB_ENCODER_BATCH_STEPS_MAX 6u
+#define ORB_ENCODER_STEP_SIZE 9u
+/* ENCODER_STEP: One further ENCODER_SAMPLE of a batch, as steps from the sample before it. */
+typedef struct {
+    uint16_t dt_us; /**< [µs] mcu_time_us minus the previous sample's, mod 2³² */
+    int16_t encoder_step; /**< [counts] encoder_count minus the previous one */
+    int16_t step_step; /**< [steps] step_count minus the previous one */
+    int16_t velocity_step; /**< [counts/s] velocity_counts_s minus the previous one */
+    uint8_t inputs; /**< this sample's inputs */
+} orb_encoder_step_t;
+
+typedef struct {
+    uint32_t mcu_time_us; /**< [µs] controller clock at sampling; wraps every 2³² µs */
+    int32_t encoder_count; /**< [counts] quadrature count since home */
+    int32_t step_count; /**< [steps] steps commanded since home */
+    int32_t velocity_counts_s; /**< [counts/s] measured encoder velocity */
+    uint8_t inputs; /**< input and position flags */
+    uint8_t steps_count; /**< records used in steps */
+    orb_encoder_step_t steps[ORB_ENCODER_BATCH_STEPS_MAX]; /**< the further samples, oldest first */
+} orb_encoder_batch_t;
+
+static inline size_t orb_encoder_batch_encode(const orb_encoder_batch_t *m, uint8_t *buf)
+{
+    size_t i;
+    if (m->steps_count > ORB_ENCODER_BATCH_STEPS_MAX) return 0u;
+    orb_put_u32(buf + 0, m->mcu_time_us);
+    orb_put_i32(buf + 4, m->encoder_count);
+    orb_put_i32(buf + 8, m->step_count);
+    orb_put_i32(buf + 12, m->velocity_counts_s);
+    orb_put_u8(buf + 16, m->inputs);
+    for (i = 0; i < m->steps_count; i++) {
+        uint8_t *p = buf + ORB_ENCODER_BATCH_SIZE + i * ORB_ENCODER_STEP_SIZE;
+        const orb_encoder_step_t *r = &m->steps[i];
+        orb_put_u16(p + 0, r->dt_us);
+        orb_put_i16(p + 2, r->encoder_step);
+        orb_put_i16(p + 4, r->step_step);
+        orb_put_i16(p + 6, r->velocity_step);
+        orb_put_u8(p + 8, r->inputs);
+    }
+    return ORB_ENCODER_BATCH_SIZE + (size_t)m->steps_count * ORB_ENCODER_STEP_SIZE;
+}
+
+static inline int orb_encoder_batch_decode(orb_encoder_batch_t *m, const uint8_t *buf, size_t len)
+{
+    size_t i, n;
+    if (len < ORB_ENCODER_BATCH_SIZE || (len - ORB_ENCODER_BATCH_SIZE) % ORB_ENCODER_STEP_SIZE != 0u) return -1;
+    n = (len - ORB_ENCODER_BATCH_SIZE) / ORB_ENCODER_STEP_SIZE;
+    if (n > ORB_ENCODER_BATCH_STEPS_MAX) return -1;
+    m->mcu_time_us = orb_get_u32(buf + 0);
+    m->encoder_count = orb_get_i32(buf + 4);
+    m->step_count = orb_get_i32(buf + 8);
+    m->velocity_counts_s = orb_get_i32(buf + 12);
+    m->inputs = orb_get_u8(buf + 16);
+    m->steps_count = (uint8_t)n;
+    for (i = 0; i < n; i++) {
+        const uint8_t *p = buf + ORB_ENCODER_BATCH_SIZE + i * ORB_ENCODER_STEP_SIZE;
+        orb_encoder_step_t *r = &m->steps[i];
+        r->dt_us = orb_get_u16(p + 0);
+        r->encoder_step = orb_get_i16(p + 2);
+        r->step_step = orb_get_i16(p + 4);
+        r->velocity_step = orb_get_i16(p + 6);
+        r->inputs = orb_get_u8(p + 8);
+    }
+    return 0;
+}
+
+static inline int orb_encoder_batch_in_range(const orb_encoder_batch_t *m)
+{
+    size_t i;
+    if (m->steps_count > ORB_ENCODER_BATCH_STEPS_MAX) return 0;
+    if (!(m->inputs <= UINT32_C(63))) return 0;
+    for (i = 0; i < m->steps_count; i++) {
+        const orb_encoder_step_t *r = &m->steps[i];
+        if (!(r->dt_us >= UINT32_C(1) && r->inputs <= UINT32_C(63))) return 0;
+    }
+    return 1;
+}
+
+/* ---- RANGE_BATCH (0x97, controller → host): Up to 14 RANGE_SAMPLEs: the first in full, the others as steps (records to frame end). */
+#define ORB_MSG_RANGE_BATCH 0x97u
+#define ORB_RANGE_BATCH_SIZE 9u
+#define ORB_RANGE_BATCH_STEPS_MAX 13u
+#define ORB_RANGE_STEP_SIZE 5u
+/* RANGE_STEP: One further RANGE_SAMPLE of a batch, as steps from the sample before it. */
+typedef struct {
+    uint16_t dt_us; /**< [µs] mcu_time_us minus the previous sample's, mod 2³² */
+    int16_t distance_step; /**< [µm] distance_um minus the previous one */
+    uint8_t quality; /**< this sample's quality */
+} orb_range_step_t;
+
+typedef struct {
+    uint32_t mcu_time_us; /**< [µs] controller clock at sampling; wraps every 2³² µs */
+    uint32_t distance_um; /**< [µm] measured distance; 0 when invalid */
+    uint8_t quality; /**< 0 = no echo or out of range, 255 = best */
+    uint8_t steps_count; /**< records used in steps */
+    orb_range_step_t steps[ORB_RANGE_BATCH_STEPS_MAX]; /**< the further samples, oldest first */
+} orb_range_batch_t;
+
+static inline size_t orb_range_batch_encode(const orb_range_batch_t *m, uint8_t *buf)
+{
+    size_t i;
+    if (m->steps_count > ORB_RANGE_BATCH_STEPS_MAX) return 0u;
+    orb_put_u32(buf + 0, m->mcu_time_us);
+    orb_put_u32(buf + 4, m->distance_um);
+    orb_put_u8(buf + 8, m->quality);
+    for (i = 0; i < m->steps_count; i++) {
+        uint8_t *p = buf + ORB_RANGE_BATCH_SIZE + i * ORB_RANGE_STEP_SIZE;
+        const orb_range_step_t *r = &m->steps[i];
+        orb_put_u16(p + 0, r->dt_us);
+        orb_put_i16(p + 2, r->distance_step);
+        orb_put_u8(p + 4, r->quality);
+    }
+    return ORB_RANGE_BATCH_SIZE + (size_t)m->steps_count * ORB_RANGE_STEP_SIZE;
+}
+
+static inline int orb_range_batch_decode(orb_range_batch_t *m, const uint8_t *buf, size_t len)
+{
+    size_t i, n;
+    if (len < ORB_RANGE_BATCH_SIZE || (len - ORB_RANGE_BATCH_SIZE) % ORB_RANGE_STEP_SIZE != 0u) return -1;
+    n = (len - ORB_RANGE_BATCH_SIZE) / ORB_RANGE_STEP_SIZE;
+    if (n > ORB_RANGE_BATCH_STEPS_MAX) return -1;
+    m->mcu_time_us = orb_get_u32(buf + 0);
+    m->distance_um = orb_get_u32(buf + 4);
+    m->quality = orb_get_u8(buf + 8);
+    m->steps_count = (uint8_t)n;
+    for (i = 0; i < n; i++) {
+        const uint8_t *p = buf + ORB_RANGE_BATCH_SIZE + i * ORB_RANGE_STEP_SIZE;
+        orb_range_step_t *r = &m->steps[i];
+        r->dt_us = orb_get_u16(p + 0);
+        r->distance_step = orb_get_i16(p + 2);
+        r->quality = orb_get_u8(p + 4);
+    }
+    return 0;
+}
+
+static inline int orb_range_batch_in_range(const orb_range_batch_t *m)
+{
+    size_t i;
+    if (m->steps_count > ORB_RANGE_BATCH_STEPS_MAX) return 0;
+    for (i = 0; i < m->steps_count; i++) {
+        const orb_range_step_t *r = &m->steps[i];
+        if (!(r->dt_us >= UINT32_C(1))) return 0;
+    }
+    return 1;
+}
+
+/* ---- HEAD_BATCH (0x98, controller → host): Up to 11 HEAD_SAMPLEs: the first in full, the others as steps (records to frame end). */
+#define ORB_MSG_HEAD_BATCH 0x98u
+#define ORB_HEAD_BATCH_SIZE 12u
+#define ORB_HEAD_BATCH_STEPS_MAX 10u
+#define ORB_HEAD_STEP_SIZE 6u
+/* HEAD_STEP: One further HEAD_SAMPLE of a batch, as steps from the sample before it. */
+typedef struct {
+    uint16_t dt_us; /**< [µs] mcu_time_us minus the previous sample's, mod 2³² */
+    int16_t pan_step; /**< [µrad] pan_urad minus the previous one */
+    int16_t tilt_step; /**< [µrad] tilt_urad minus the previous one */
+} orb_head_step_t;
+
+typedef struct {
+    uint32_t mcu_time_us; /**< [µs] controller clock at sampling; wraps every 2³² µs */
+    int32_t pan_urad; /**< [µrad] measured pan */
+    int32_t tilt_urad; /**< [µrad] measured tilt */
+    uint8_t steps_count; /**< records used in steps */
+    orb_head_step_t steps[ORB_HEAD_BATCH_STEPS_MAX]; /**< the further samples, oldest first */
+} orb_head_batch_t;
+
+static inline size_t orb_head_batch_encode(const orb_head_batch_t *m, uint8_t *buf)
+{
+    size_t i;
+    if (m->steps_count > ORB_HEAD_BATCH_STEPS_MAX) return 0u;
+    orb_put_u32(buf + 0, m->mcu_time_us);
+    orb_put_i32(buf + 4, m->pan_urad);
+    orb_put_i32(buf + 8, m->tilt_urad);
+    for (i = 0; i < m->steps_count; i++) {
+        uint8_t *p = buf + ORB_HEAD_BATCH_SIZE + i * ORB_HEAD_STEP_SIZE;
+        const orb_head_step_t *r = &m->steps[i];
+        orb_put_u16(p + 0, r->dt_us);
+        orb_put_i16(p + 2, r->pan_step);
+        orb_put_i16(p + 4, r->tilt_step);
+    }
+    return ORB_HEAD_BATCH_SIZE + (size_t)m->steps_count * ORB_HEAD_STEP_SIZE;
+}
+
+static inline int orb_head_batch_decode(orb_head_batch_t *m, const uint8_t *buf, size_t len)
+{
+    size_t i, n;
+    if (len < ORB_HEAD_BATCH_SIZE || (len - ORB_HEAD_BATCH_SIZE) % ORB_HEAD_STEP_SIZE != 0u) return -1;
+    n = (len - ORB_HEAD_BATCH_SIZE) / ORB_HEAD_STEP_SIZE;
+    if (n > ORB_HEAD_BATCH_STEPS_MAX) return -1;
+    m->mcu_time_us = orb_get_u32(buf + 0);
+    m->pan_urad = orb_get_i32(buf + 4);
+    m->tilt_urad = orb_get_i32(buf + 8);
+    m->steps_count = (uint8_t)n;
+    for (i = 0; i < n; i++) {
+        const uint8_t *p = buf + ORB_HEAD_BATCH_SIZE + i * ORB_HEAD_STEP_SIZE;
+        orb_head_step_t *r = &m->steps[i];
+        r->dt_us = orb_get_u16(p + 0);
+        r->pan_step = orb_get_i16(p + 2);
+        r->tilt_step = orb_get_i16(p + 4);
+    }
+    return 0;
+}
+
+static inline int orb_head_batch_in_range(const orb_head_batch_t *m)
+{
+    size_t i;
+    if (m->steps_count > ORB_HEAD_BATCH_STEPS_MAX) return 0;
+    for (i = 0; i < m->steps_count; i++) {
+        const orb_head_step_t *r = &m->steps[i];
+        if (!(r->dt_us >= UINT32_C(1))) return 0;
+    }
+    return 1;
+}
+
 /* ---- payload check by id: the frame decoder's unknown_id / bad_payload */
 #define ORB_PAYLOAD_OK 0
 #define ORB_PAYLOAD_UNKNOWN_ID (-1)
@@ -1125,6 +1362,15 @@ static inline int orb_payload_check(uint8_t msg_id, const uint8_t *payload, size
                 orb_utf8_valid(payload + ORB_LOG_SIZE, len - ORB_LOG_SIZE))) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
     case ORB_MSG_REF_MARK:
         return (len == ORB_REF_MARK_SIZE) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
+    case ORB_MSG_ENCODER_BATCH:
+        return (len >= ORB_ENCODER_BATCH_SIZE && (len - ORB_ENCODER_BATCH_SIZE) % ORB_ENCODER_STEP_SIZE == 0u &&
+                (len - ORB_ENCODER_BATCH_SIZE) / ORB_ENCODER_STEP_SIZE <= ORB_ENCODER_BATCH_STEPS_MAX) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
+    case ORB_MSG_RANGE_BATCH:
+        return (len >= ORB_RANGE_BATCH_SIZE && (len - ORB_RANGE_BATCH_SIZE) % ORB_RANGE_STEP_SIZE == 0u &&
+                (len - ORB_RANGE_BATCH_SIZE) / ORB_RANGE_STEP_SIZE <= ORB_RANGE_BATCH_STEPS_MAX) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
+    case ORB_MSG_HEAD_BATCH:
+        return (len >= ORB_HEAD_BATCH_SIZE && (len - ORB_HEAD_BATCH_SIZE) % ORB_HEAD_STEP_SIZE == 0u &&
+                (len - ORB_HEAD_BATCH_SIZE) / ORB_HEAD_STEP_SIZE <= ORB_HEAD_BATCH_STEPS_MAX) ? ORB_PAYLOAD_OK : ORB_PAYLOAD_BAD;
     default:
         return ORB_PAYLOAD_UNKNOWN_ID;
     }

@@ -19,7 +19,7 @@ import uuid
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import pytest
 
@@ -43,6 +43,7 @@ from host.link import (
 )
 from host.link.common import LinkState
 from host.link.session import SEQ_RESTART_BELOW, SEQ_RESTART_MIN_JUMP
+from host.service.wiring import stream_rates
 from host.transport import Transport, create_transport
 from protocol import (
     PARAMS_BY_ID,
@@ -54,6 +55,7 @@ from protocol import (
     decode_payload,
 )
 from protocol import messages as m
+from protocol.enums import Capability, Stream
 from protocol.schema import HEADER_SIZE
 from tests.link.sim_bridge import SimBridge
 
@@ -241,8 +243,8 @@ class XBeeLink(MatrixLink):
         )  # fmt: skip
 
     def frames_lost_to_host(self) -> int:
-        """Frames whose every MAC attempt failed."""
-        return int(self.emulator.counters.up_lost)
+        """Frames whose every MAC attempt failed, or that found the module's buffer full."""
+        return int(self.emulator.counters.up_lost) + int(self.emulator.counters.up_overflow)
 
     def frames_corrupted_to_host(self) -> int:
         """None: the FCS turns a corrupted attempt into a retry."""
@@ -399,9 +401,11 @@ async def _until(condition: Callable[[], bool]) -> None:
         await asyncio.sleep(0.005)
 
 
-async def run_matrix(rig: Rig, n: int) -> list[Outcome]:
-    """Connect, then n commands over len(WORKER_PARAMS) workers with the disturbances."""
+async def run_matrix(rig: Rig, n: int, streams: dict[Stream, int] | None = None) -> list[Outcome]:
+    """Connect (streams on, if given), then n commands over the workers with the disturbances."""
     await rig.ctrl.connect()
+    if streams:
+        await rig.ctrl.set_streams(streams)  # batch ages: the Controller's plan for the link
     outcomes: list[Outcome] = []
     share = n // len(WORKER_PARAMS)
     async with asyncio.timeout(RUN_TIMEOUT_S), asyncio.TaskGroup() as group:
@@ -493,6 +497,7 @@ class FaultMatrix:
     """The same run against each transport (a subclass per link)."""
 
     link_cls: type[MatrixLink]
+    streams: ClassVar[dict[Stream, int] | None] = None  # telemetry on during the run (batched)
 
     @pytest.fixture
     async def rig(
@@ -528,13 +533,16 @@ class FaultMatrix:
         ],
     )
     async def test_every_command_acked_once_or_failed_clearly(self, rig: Rig, n: int) -> None:
-        outcomes = await run_matrix(rig, n)
+        outcomes = await run_matrix(rig, n, self.streams)
         replays = check_outcomes(rig, outcomes, len(WORKER_PARAMS) * (n // len(WORKER_PARAMS)))
         figures = check_statistics(rig)
         assert figures["retransmits"] > 0
         assert LinkEvent.CONTROLLER_RESET in rig.events
         assert rig.ctrl.transport.stats.losses >= 1  # the unplug was seen as such
         assert not rig.loop_errors
+        if self.streams:  # the telemetry really came in batches
+            assert rig.ctrl.session.capabilities & Capability.BATCHED_TELEMETRY
+            assert rig.ctrl.batch_stats.samples > 2 * rig.ctrl.batch_stats.batches > 0
         if replays:  # last, so every other check above has already passed
             raise ReplayedAcrossRebootError("; ".join(replays))
 
@@ -545,6 +553,13 @@ class TestSerialPty(FaultMatrix):
 
 class TestXBeeApiMode2(FaultMatrix):
     link_cls = XBeeLink
+
+
+class TestXBeeBatchedTelemetry(FaultMatrix):
+    """The XBee matrix with the daemon's XBee streams on, sent in batches (issue 16)."""
+
+    link_cls = XBeeLink
+    streams: ClassVar[dict[Stream, int] | None] = stream_rates("xbee", ranging=True)
 
 
 class TestCanVirtual(FaultMatrix):

@@ -92,7 +92,11 @@ async def test_controller_reboot_detected_and_streams_restored(hil) -> None:  # 
     bridge, ctrl, events = hil
     await ctrl.connect()
     await ctrl.set_streams({Stream.ENCODER: 200})
-    await asyncio.sleep(1.5)  # > 256 controller frames: a restarted seq is then unmistakable
+    # > 256 controller frames: a restarted seq is then unmistakable (batches make them fewer).
+    for _ in range(400):
+        if ctrl.session.stats.frames_in > 300:
+            break
+        await asyncio.sleep(0.02)
     old_boot = bridge.sim.firmware.boot_id
     bridge.sim.reset_controller()
     for _ in range(200):

@@ -15,6 +15,7 @@ from protocol import cobs
 from protocol.compat import HANDSHAKE_IDS
 from protocol.crc import frame_crc
 from protocol.framing import encode_frame
+from protocol.gen_vectors import build
 from protocol.schema import (
     HEADER_FORMAT,
     MAX_WIRE_FRAME,
@@ -108,7 +109,7 @@ def build_injected_stream(seed: int, rounds: int, *, exact_only: bool = False) -
     for i in range(rounds):
         vec = vectors[i % len(vectors)]
         spec = SCHEMA.by_name[vec["message"]]
-        msg = spec.cls(**vec["fields"])
+        msg = build(spec, vec["fields"])
         out.add_good(msg, vec["seq"], vec["flags"])
         if rng.random() < 0.2:
             out.add_good(msg, vec["seq"], vec["flags"])  # a duplicate is two good frames

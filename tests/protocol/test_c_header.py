@@ -52,6 +52,15 @@ def _printer(spec: MessageSpec) -> str:
             prints.append(f'printf(" {f.name}=%ld", (long)m.{f.name});')
         else:
             prints.append(f'printf(" {f.name}=%lu", (unsigned long)m.{f.name});')
+    rec = spec.records
+    if rec is not None:
+        inner = "".join(
+            f'printf(" %s", "{f.name}"); printf("=%ld", (long)m.{rec.field_name}[i].{f.name}); '
+            for f in rec.fields
+        )
+        prints.append(
+            f"{{ size_t i; for (i = 0; i < m.{rec.field_name}_count; i++) {{ {inner}}} }}"
+        )
     return (
         f"    case ORB_MSG_{spec.name}: {{\n        {base}_t m;\n"
         f"        if ({base}_decode(&m, p->payload, p->payload_len) != 0) {{"
@@ -82,6 +91,14 @@ def _encoder(vec: dict[str, Any]) -> str:
             lines.append(f"          memcpy(m.{f.name}, t, {len(raw)}u); }}")
         else:
             lines.append(f"        m.{f.name} = ({f.wire.c_type}){_c_value(f, value)};")
+    rec = spec.records
+    if rec is not None:
+        items = vec["fields"][rec.field_name]
+        lines.append(f"        m.{rec.field_name}_count = {len(items)}u;")
+        for i, item in enumerate(items):
+            for f in rec.fields:
+                value, member = _c_value(f, item[f.name]), f"m.{rec.field_name}[{i}].{f.name}"
+                lines.append(f"        {member} = ({f.wire.c_type}){value};")
     lines.append(
         f"        n = {base}_encode(&m, payload);\n"
         f"        w = orb_frame_encode(ORB_MSG_{spec.name}, {vec['seq']}u, {vec['flags']}u,"
@@ -155,6 +172,9 @@ def _expected_decode(vec: dict[str, Any]) -> str:
         value = vec["fields"][f.name]
         shown = value.encode("utf-8").hex() if f.wire is TEXT else str(value)
         parts.append(f"{f.name}={shown}")
+    if spec.records is not None:
+        for item in vec["fields"][spec.records.field_name]:
+            parts += [f"{f.name}={item[f.name]}" for f in spec.records.fields]
     return " ".join(parts)
 
 
