@@ -14,8 +14,10 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import tempfile
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import aiohttp
@@ -66,17 +68,33 @@ class SyntheticCamera:
         self._closed.set()
 
 
-def bench_config(width: int, height: int) -> Config:
-    """The paper's camera at full resolution, the station on a free port."""
+RIG = """
+[head]
+tilt_max_deg = 80.0
+[camera]
+width = {width}
+height = {height}
+[camera.intrinsics]
+u0 = {u0}
+v0 = {v0}
+fx = 1400.0
+fy = 1400.0
+[workpiece.frame]
+matrix = [[1, 0, 0, -300.0], [0, 1, 0, -300.0], [0, 0, 1, 0], [0, 0, 0, 1]]
+"""
+
+
+def bench_config(width: int, height: int, directory: Path) -> Config:
+    """The paper's camera at full resolution (rig file in `directory`), the station on port 0."""
+    rig = directory / "rig.toml"
+    rig.write_text(RIG.format(width=width, height=height, u0=width / 2, v0=height / 2))
     return config_from_dict(
         {
-            "camera": {"source": "none", "width": width, "height": height,
-                       "u0": width / 2, "v0": height / 2, "fx": 1400.0, "fy": 1400.0},
-            "model": {"position_mm": [-300.0, -300.0, 0.0]},
-            "head": {"tilt_max_deg": 80.0},
+            "camera": {"source": "none"},
+            "rig": {"path": str(rig)},
             "ui": {"enabled": True, "port": 0, "operator_token": TOKEN},
         }
-    )  # fmt: skip
+    )
 
 
 def registrar(config: Config) -> Any:
@@ -160,7 +178,7 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     """The whole measurement."""
     from playwright.async_api import async_playwright
 
-    config = bench_config(width, height)
+    config = bench_config(width, height, Path(tempfile.mkdtemp(prefix="bench-station-")))
     station = Station(config, OpContext(None))
     await station.start()
     source = SyntheticCamera(width, height, fps)
