@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
+from host.commissioning.coverage import MIN_PROGRESS
 from host.commissioning.ops import COMMISSIONING_OPS
 from host.config import Config
 from host.config_ui import UiConfig
@@ -441,6 +442,7 @@ def station_info(config: Config, track: Track, parts: Parts) -> dict[str, Any]:
         },
         "ghost": config.ui.ghost,
         "runs": RUN_OPS,
+        "coverage_min": dict(MIN_PROGRESS),  # what an intrinsics verdict asks of each bar
         "track": {
             "length_mm": round(track.length_mm, 3),
             "closed": track.closed,

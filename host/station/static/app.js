@@ -7,8 +7,8 @@ const HOLD_PERIOD_MS = 100;       // dead-man heartbeat while a jog button is he
 const PING_PERIOD_MS = 2000;      // clock offset between this page and the daemon
 const RECONNECT_MIN_MS = 500;
 const RECONNECT_MAX_MS = 5000;
-const DRAG_DEG_PER_PX = 0.1;
 const TAP_SLOP_PX = 8;
+const TIMING_KEEP = 300;          // frames whose latency breakdown is kept (for the benchmark)
 
 const $ = (id) => document.getElementById(id);
 const state = {
@@ -16,6 +16,7 @@ const state = {
   frames: 0, fpsTimes: [], lastLatencyMs: null, latencies: [], offsetMs: null, pings: [],
   points: {}, frameSize: [640, 480], status: null, jog: null, reqId: 0, picked: [],
   reconnectMs: RECONNECT_MIN_MS, pendingHead: null, deadman: 0, lastReply: null,
+  ghost: null, ghostDrawn: false, sigma: null, run: null, timing: [],
 };
 window.orbitar = state;  // for the browser tests and the curious
 
@@ -79,7 +80,9 @@ function onHello(msg) {
   document.body.classList.toggle("viewer", msg.role !== "operator");
   $("role").textContent = msg.role === "operator" ? "operator" : "viewer (no motion)";
   setConn(true, "connected");
-  setupHead(msg.head_deg); drawPlan(msg.track); showParts(msg.parts);
+  setupHead(msg.head_deg); drawPlan(msg.track); showParts(msg.parts); setupRuns(msg.runs || []);
+  if (state.ghost === null) state.ghost = Boolean(msg.ghost);
+  $("ghost").checked = state.ghost; sendView();
   ping();
 }
 
@@ -99,13 +102,15 @@ function onPong(msg) {
 // ---- frames ------------------------------------------------------------------------------
 
 async function onFrame(buffer) {
+  const receivedMs = performance.now();
   const view = new DataView(buffer);
   const headLen = view.getUint32(0);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
   const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
-  let latency = null;
+  let latency = null; let decodedMs = null;
   try {
     const bitmap = await createImageBitmap(blob);
+    decodedMs = performance.now();
     const canvas = $("view");
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
@@ -116,7 +121,15 @@ async function onFrame(buffer) {
   } finally {
     send({ type: "ack", index: header.index, latency_ms: latency });
   }
+  if (state.offsetMs !== null) {  // where the time went: daemon, network, decode, draw
+    const t = {
+      daemon: header.age_at_send_ms, transit: receivedMs + state.offsetMs - header.sent_ms,
+      decode: decodedMs - receivedMs, draw: performance.now() - decodedMs, total: latency,
+    };
+    state.timing.push(t); if (state.timing.length > TIMING_KEEP) state.timing.shift();
+  }
   state.frames += 1; state.points = header.points || {}; state.frameSize = [header.width, header.height];
+  state.ghostDrawn = Boolean(header.ghost);
   state.lastLatencyMs = latency;
   if (latency !== null) { state.latencies.push(latency); if (state.latencies.length > 300) state.latencies.shift(); }
   const now = performance.now(); state.fpsTimes.push(now);
@@ -124,6 +137,7 @@ async function onFrame(buffer) {
   const homed = !state.status || (state.status.link || {}).homed !== false;
   let note = header.registered ? "" : "no pose for this frame: overlay withheld";
   if (header.registered && !homed) note = "not homed: the overlay assumes the trolley at home until Home is run";
+  $("ghost-note").textContent = state.ghost && header.registered && !header.ghost ? "(none yet: no drift correction running)" : "";
   $("viewnote").textContent = note;
   $("viewnote").hidden = !note;
 }
@@ -204,19 +218,31 @@ canvas.addEventListener("pointerdown", (ev) => {
   canvas.setPointerCapture(ev.pointerId);
   drag = { x: ev.clientX, y: ev.clientY, pan: Number($("pan").value), tilt: Number($("tilt").value), moved: false };
 });
+// The head turns by the angle the dragged pixels subtend through the calibrated intrinsics,
+// so the scene follows the finger whatever the lens and the view's size on screen.
+function dragDeg(d, ev) {
+  const rect = canvas.getBoundingClientRect(); const cam = state.info.camera;
+  const sx = state.frameSize[0] / rect.width; const sy = state.frameSize[1] / rect.height;
+  const u = (x) => (x - rect.left) * sx; const v = (y) => (y - rect.top) * sy;
+  const angle = (a, b, c, f) => ((Math.atan((b - c) / f) - Math.atan((a - c) / f)) * 180) / Math.PI;
+  return [angle(u(d.x), u(ev.clientX), cam.u0, cam.fx), angle(v(d.y), v(ev.clientY), cam.v0, cam.fy)];
+}
+
 canvas.addEventListener("pointermove", (ev) => {
   if (!drag) return;
   const dx = ev.clientX - drag.x; const dy = ev.clientY - drag.y;
   if (Math.hypot(dx, dy) > TAP_SLOP_PX) drag.moved = true;
   if (drag.moved && state.role === "operator") {
-    $("pan").value = drag.pan - dx * DRAG_DEG_PER_PX; $("tilt").value = drag.tilt + dy * DRAG_DEG_PER_PX;
-    showHead($("pan").value, $("tilt").value);
+    const [pan, tilt] = dragDeg(drag, ev);
+    $("pan").value = drag.pan - pan; $("tilt").value = drag.tilt + tilt;
+    drag.target = [drag.pan - pan, drag.tilt + tilt];
+    showHead(drag.target[0], drag.target[1]);
   }
 });
 canvas.addEventListener("pointerup", (ev) => {
   if (!drag) return;
   const d = drag; drag = null;
-  if (d.moved && state.role === "operator") sendHead(Number($("pan").value), Number($("tilt").value));
+  if (d.moved && state.role === "operator" && d.target) sendHead(d.target[0], d.target[1]);
   else if (!d.moved) tapView(ev);
 });
 canvas.addEventListener("pointercancel", () => { drag = null; });
@@ -232,6 +258,12 @@ function tapView(ev) {
   }
   if (best) pickPoint(best.name);
 }
+
+// ---- the ghost: this page's choice, drawn by the daemon into this page's frames ----------
+
+function sendView() { if (state.ghost !== null) send({ type: "view", ghost: state.ghost }); }
+
+$("ghost").addEventListener("change", () => { state.ghost = $("ghost").checked; sendView(); });
 
 // ---- the track plan ------------------------------------------------------------------------
 
@@ -328,6 +360,10 @@ function onStatus(msg) {
   state.status = msg;
   const st = msg.status || {}; const ctrl = st.controller || {}; const link = msg.link || {};
   const svc = st.service || {}; const frames = msg.frames || {}; const stn = msg.station || {};
+  // The budget is evaluated at the controller's last known pose: its age is that pose's age.
+  const sigmaPx = typeof svc.overlay_sigma_px === "number" ? svc.overlay_sigma_px : null;
+  const poseAt = typeof ctrl.age_s === "number" ? msg.host_ms - ctrl.age_s * 1000 : null;
+  state.sigma = { px: sigmaPx, at_host_ms: poseAt };
   const pose = st.pose; const head = ctrl.head_rad || [null, null];
   const ageMs = pose ? msg.host_ms - pose.t_ns / 1e6 : null;
   const src = frames.source || {};
@@ -348,6 +384,7 @@ function onStatus(msg) {
     ["tooth skips found", link.skips_detected ?? "—"],
     ["position σ", fmt(link.position_sigma_mm, 2, " mm")],
     ["pose age", fmt(ageMs, 0, " ms")],
+    ["overlay σ (predicted)", sigmaText(), state.sigma && state.sigma.px !== null ? "" : "bad"],
     ["camera", `${src.kind || "none"} ${src.state || ""} ${src.detail || ""}`, src.state && src.state !== "running" ? "bad" : ""],
     ["frame loop", `${fmt(svc.fps, 1, " fps")}, dropped ${frames.dropped ?? 0}`],
     ["view", `${fmt(pageFps(), 1, " fps")}, ${fmt(state.lastLatencyMs, 0, " ms")} latency`],
@@ -359,16 +396,38 @@ function onStatus(msg) {
     const tr = document.createElement("tr"); const th = document.createElement("th"); const td = document.createElement("td");
     th.textContent = k; td.textContent = v; if (cls) td.className = cls; tr.append(th, td); table.append(tr);
   }
-  $("figures").textContent = `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")}`;
+  showFigures();
   const latched = ctrl.state === "ESTOP" || ctrl.state === "FAULT";
   const faults = (ctrl.fault_names || []).join(", ");
   $("motion-state").textContent = latched ? `${ctrl.state} LATCHED (${faults}): Clear releases` : ctrl.state || "";
   $("motion-state").classList.toggle("latched", latched);
   showHall(msg.hall);
+  showRun(msg.commissioning);
   showTrolley(link.track_s_mm ?? (ctrl.position_mm ?? null));
   if (!drag && head[0] !== null && document.activeElement !== $("pan") && document.activeElement !== $("tilt")) {
     $("pan").value = deg(head[0]); $("tilt").value = deg(head[1]); showHead(deg(head[0]), deg(head[1]));
   }
+}
+
+// The predicted overlay σ and its age on the daemon's clock (it keeps counting if status stops).
+function sigmaAgeS() {
+  const sg = state.sigma;
+  if (!sg || sg.at_host_ms === null || state.offsetMs === null) return null;
+  return (performance.now() + state.offsetMs - sg.at_host_ms) / 1000;
+}
+
+function sigmaText() {
+  const sg = state.sigma;
+  if (!sg || sg.px === null) return "unknown (no error budget for this pose)";
+  const age = sigmaAgeS();
+  return `${sg.px.toFixed(1)} px, ${age === null ? "age unknown" : `${age.toFixed(1)} s old`}`;
+}
+
+function showFigures() {
+  const ctrl = ((state.status || {}).status || {}).controller || {};
+  const sg = state.sigma; const age = sigmaAgeS();
+  const sigma = !sg || sg.px === null ? "σ unknown" : `σ ${sg.px.toFixed(1)} px (${age === null ? "?" : age.toFixed(1)} s)`;
+  $("figures").textContent = `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")} · ${sigma}`;
 }
 
 function faultText(ctrl) {
@@ -426,6 +485,187 @@ function pickPoint(name) {
   }
 }
 
+// ---- commissioning: runs started here through the same ops as `orbitar calibrate` ----------
+
+// Fields of the runs this page knows (docs/COMMISSIONING.md); an empty field is left out, so the
+// daemon's default applies. A run the daemon offers that is not listed gets a JSON arguments box.
+const BOARD_FIELDS = [
+  ["board.squares_x", "int", "board squares across"], ["board.squares_y", "int", "board squares down"],
+  ["board.square_mm", "number", "square edge, mm"], ["board.marker_mm", "number", "marker edge, mm"],
+];
+const POSE_FIELDS = [
+  ["board_pose", "json", "board pose (surveyed), 4×4 JSON, mm"],
+  ["board_sigma_mm", "number", "its survey σ, mm"], ["board_sigma_rad", "number", "its survey σ, rad"],
+];
+const SPEED = ["speed_mm_s", "number", "trolley speed, mm/s"];
+const WRITE = ["write", "bool", "write the rig file if it passes", true];
+const STATIONS = ["stations_mm", "list", "stations s, mm (empty: here)"];
+const RUN_FORMS = {
+  calibrate_intrinsics: { title: "Camera intrinsics (board)", fields: [
+    ["board_centre_mm", "vec3", "board centre X Y Z, mm (tape)"], STATIONS, ...BOARD_FIELDS,
+    ["min_views", "int", "views needed"], ["max_rms_px", "number", "pass if RMS ≤, px"],
+    ["full_distortion", "bool", "also p1, p2, k3", false], SPEED, WRITE] },
+  calibrate_head: { title: "Head (M_cr) and track placement", fields: [...POSE_FIELDS, STATIONS, ...BOARD_FIELDS, SPEED, WRITE] },
+  calibrate_check: { title: "Acceptance check", fields: [...POSE_FIELDS, STATIONS, ...BOARD_FIELDS,
+    ["max_rms_px", "number", "pass if RMS ≤, px"], SPEED] },
+  calibrate_latency: { title: "Frame latency", fields: [...POSE_FIELDS.slice(0, 1),
+    ["station_mm", "number", "station facing the board, mm"], ["span_mm", "number", "pass length, mm"],
+    ["passes", "int", "passes"], ...BOARD_FIELDS, SPEED, WRITE] },
+  survey_workpiece: { title: "Workpiece survey (rangefinder)", fields: [
+    ["aims", "json", "aims [[s_mm, pan_rad, tilt_rad], …]"], ["model_points_mm", "json", "model points [[x, y, z], …]"],
+    ["samples", "int", "readings per point"], WRITE] },
+  survey_home: { title: "Home survey (rangefinder)", fields: [
+    ["pan_rad", "deg", "pan at an end wall, °"], ["tilt_rad", "deg", "tilt, °"], ["samples", "int", "readings"], WRITE] },
+};
+const COVERAGE_KEYS = ["x", "y", "size", "skew"];
+
+function setupRuns(runs) {
+  const select = $("run-op"); const keep = select.value; select.replaceChildren();
+  $("comm-panel").hidden = !runs.length;
+  for (const name of runs) {
+    const o = document.createElement("option"); o.value = name;
+    o.textContent = (RUN_FORMS[name] || {}).title || name; select.append(o);
+  }
+  if (runs.includes(keep)) select.value = keep;
+  buildRunForm();
+  $("run-who").textContent = state.role === "operator" ? "" : "(viewer: follow only)";
+}
+
+function buildRunForm() {
+  const name = $("run-op").value; const form = $("run-form");
+  if (form.dataset.op === name) return;
+  form.replaceChildren(); form.dataset.op = name;
+  const fields = (RUN_FORMS[name] || { fields: [["", "args", "arguments, JSON object"]] }).fields;
+  for (const [key, kind, label, dflt] of fields) {
+    const row = document.createElement("label"); const span = document.createElement("span");
+    span.textContent = label;
+    const input = document.createElement(kind === "json" || kind === "args" ? "textarea" : "input");
+    input.dataset.key = key; input.dataset.kind = kind;
+    if (kind === "bool") { input.type = "checkbox"; input.checked = Boolean(dflt); } else { input.type = "text"; }
+    if (kind === "vec3") input.placeholder = "x y z";
+    row.append(span, input); form.append(row);
+  }
+}
+
+// The form as the op's arguments; a malformed field throws with its label.
+function runArgs() {
+  const args = {};
+  for (const input of $("run-form").querySelectorAll("[data-key]")) {
+    const { key, kind } = input.dataset; const text = input.value.trim();
+    const label = input.previousSibling.textContent;
+    let value;
+    if (kind === "bool") value = input.checked;
+    else if (!text) continue;
+    else if (kind === "args") { Object.assign(args, JSON.parse(text)); continue; }
+    else if (kind === "json") value = JSON.parse(text);
+    else if (kind === "vec3" || kind === "list") value = text.split(/[\s,;]+/).filter(Boolean).map(Number);
+    else if (kind === "deg") value = (Number(text) * Math.PI) / 180;
+    else value = Number(text);
+    if ((kind === "number" || kind === "int" || kind === "deg") && !Number.isFinite(value)) throw new Error(`${label}: not a number`);
+    if (kind === "int" && !Number.isInteger(value)) throw new Error(`${label}: not a whole number`);
+    if ((kind === "vec3" || kind === "list") && value.some((x) => !Number.isFinite(x))) throw new Error(`${label}: numbers only`);
+    const [outer, inner] = key.split(".");
+    if (inner) { args[outer] = args[outer] || {}; args[outer][inner] = value; } else args[outer] = value;
+  }
+  return args;
+}
+
+$("run-op").addEventListener("change", buildRunForm);
+$("run-start").addEventListener("click", () => {
+  let args;
+  try { args = runArgs(); } catch (err) { toast(`run not started: ${err.message}`); return; }
+  op($("run-op").value, args);
+});
+$("run-cancel").addEventListener("click", () => op("commissioning_cancel"));
+
+function bar(label, value, cls, need, text) {
+  const row = document.createElement("div"); row.className = "bar";
+  const name = document.createElement("span"); name.textContent = label;
+  const track = document.createElement("div"); track.className = "track";
+  const fill = document.createElement("div"); fill.className = `fill ${cls}`;
+  fill.style.width = `${Math.max(0, Math.min(1, value)) * 100}%`; track.append(fill);
+  if (need !== null) {
+    const mark = document.createElement("div"); mark.className = "need"; mark.style.left = `${need * 100}%`; track.append(mark);
+  }
+  const out = document.createElement("span"); out.textContent = text;
+  row.append(name, track, out);
+  return row;
+}
+
+// Per-view errors from a finished run: RMS per kept view (intrinsics, head, check), the views
+// dropped as outliers (their RMS is not reported), or the survey's residual per point.
+function perViewRows(result) {
+  const rows = [];
+  if (Array.isArray(result.per_view_rms_px)) {
+    const dropped = new Set(result.rejected_views || []);
+    const kept = (result.views || {}).ok ?? result.per_view_rms_px.length + dropped.size;
+    const errors = [...result.per_view_rms_px];
+    for (let j = 0; j < Math.max(kept, errors.length); j++) {
+      if (dropped.has(j)) rows.push({ label: `view ${j + 1}`, value: null, outlier: true, unit: "px" });
+      else rows.push({ label: `view ${j + 1}`, value: errors.shift(), outlier: false, unit: "px" });
+    }
+  } else if (Array.isArray(result.residuals_mm)) {
+    result.residuals_mm.forEach((r, i) => {
+      const v = Array.isArray(r) ? Math.hypot(...r) : r;
+      rows.push({ label: `P${i + 1}`, value: v, outlier: false, unit: "mm" });
+    });
+  }
+  return rows;
+}
+
+function showRun(run) {
+  state.run = run || null;
+  const running = Boolean(run && run.state === "running");
+  $("run-start").disabled = running; $("run-cancel").disabled = !running;
+  if (!run || run.state === "none") { $("run-state").textContent = "No run yet."; return; }
+  if (run.state === "unavailable") {
+    $("run-state").textContent = `Commissioning unavailable: ${run.reason || ""}`;
+    $("run-start").disabled = true; return;
+  }
+  const p = run.progress || {}; const title = (RUN_FORMS[`calibrate_${run.kind}`] || RUN_FORMS[`survey_${run.kind}`] || {}).title || run.kind;
+  const where = p.of ? `, view ${p.view} of ${p.of}${p.label ? ` (${p.label})` : ""}` : "";
+  const counts = p.accepted === undefined ? "" : ` — ${p.accepted} kept, ${p.blurred ?? 0} blurred, ${p.not_found ?? 0} without the board`;
+  const what = run.state === "running" ? `${p.phase || "running"}${where}${counts}` : run.state;
+  $("run-state").textContent = `Run ${run.id} · ${title}: ${what} · ${fmt(run.elapsed_s, 0, " s")}`;
+  const result = run.result || {};
+  const cov = p.coverage || result.coverage;
+  const bars = $("run-coverage"); bars.replaceChildren();
+  if (cov) {
+    const need = (state.info && state.info.coverage_min) || {};
+    for (const k of COVERAGE_KEYS) {
+      const v = Number(cov[k] ?? 0); const n = need[k] ?? null;
+      bars.append(bar(k.toUpperCase(), v, n !== null && v >= n ? "ok" : "", n, `${Math.round(v * 100)} %`));
+    }
+  }
+  const verdict = $("run-verdict"); const reasons = $("run-reasons"); reasons.replaceChildren();
+  const finished = run.state === "done" && typeof result.passed === "boolean";
+  verdict.hidden = !finished && run.state === "running";
+  if (finished) {
+    verdict.textContent = result.passed ? "PASS" : "FAIL"; verdict.className = result.passed ? "pass" : "fail";
+  } else if (run.state !== "running") {
+    verdict.textContent = run.state === "cancelled" ? "CANCELLED: nothing written" : "ERROR: nothing written";
+    verdict.className = "fail";
+  }
+  const why = finished ? result.reasons || [] : [run.reason || run.error].filter(Boolean);
+  for (const text of why) { const li = document.createElement("li"); li.textContent = text; reasons.append(li); }
+  if (finished && result.written) { const li = document.createElement("li"); li.textContent = `written to ${result.written}`; reasons.append(li); }
+  const table = $("run-views"); table.replaceChildren();
+  const rows = finished ? perViewRows(result) : [];
+  const top = Math.max(1e-9, ...rows.map((r) => r.value ?? 0));
+  for (const r of rows) {
+    const tr = document.createElement("tr"); tr.dataset.view = r.label;
+    const name = document.createElement("td"); name.textContent = r.label;
+    const cell = document.createElement("td"); cell.style.width = "100%";
+    const text = r.outlier ? "outlier, dropped" : `${r.value.toFixed(3)} ${r.unit}`;
+    cell.append(bar("", r.outlier ? 1 : r.value / top, r.outlier ? "outlier" : "ok", null, text));
+    if (r.outlier) { tr.classList.add("outlier"); name.className = "outlier"; }
+    tr.append(name, cell); table.append(tr);
+  }
+  const link = $("run-report");
+  link.hidden = !run.report_url;
+  if (run.report_url) link.href = run.report_url;
+}
+
 // ---- little things -------------------------------------------------------------------------
 
 let toastTimer = null;
@@ -446,4 +686,5 @@ $("login-form").addEventListener("submit", (ev) => {
 });
 
 setInterval(ping, PING_PERIOD_MS);
+setInterval(() => { if (state.status) showFigures(); }, 500);
 connect();
