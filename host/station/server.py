@@ -76,6 +76,8 @@ StatusProvider = Callable[[], Mapping[str, Any]]
 class Station:
     """The station's HTTP server, its frame hub and its pages."""
 
+    ws_compress = False  # True only for the benchmark's before-and-after
+
     def __init__(
         self,
         config: Config,
@@ -317,7 +319,9 @@ class Station:
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         """A page's live connection."""
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES)  # liveness: the page's pings
+        # liveness: the page's pings; no permessage-deflate: frames are JPEG, deflating them
+        # costs the daemon and the browser CPU for nothing (benchmarks/bench_station.py)
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, compress=self.ws_compress)
         await ws.prepare(request)
         session = PageSession(self, ws)
         self.sessions.add(session)

@@ -19,6 +19,7 @@ from typing import Any
 import pytest
 
 from host.config_ui import UiConfig
+from host.geometry.head import Rig
 from host.station.render import ViewInput
 from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, Harness, sim_daemon
 from tests.station.conftest import ARTIFACTS, OPERATOR_TOKEN, VIEWER_TOKEN, dump, free_port
@@ -122,6 +123,19 @@ async def test_an_intrinsics_run_started_on_the_page_fills_the_bars_and_cancels(
         assert "CANCELLED" in await page.locator("#run-verdict").text_content()
         await page.screenshot(path=str(ARTIFACTS / "commissioning_cancelled.png"), full_page=True)
         assert h.rig_path.read_text() == before
+        # Looking at the workpiece, the error budget predicts the overlay's σ: the page shows it.
+        await h.request("clear")
+        s_now = (await h.request("status"))["controller"]["position_mm"] + h.loop.home_s_mm
+        pan, tilt = Rig().aim(s_now, [-300.0, -300.0, 300.0])
+        await h.request("head", pan_rad=pan, tilt_rad=tilt)
+        sigma = (await h.request("status"))["service"]["overlay_sigma_px"]
+        assert sigma is not None
+        await page.wait_for_function(
+            "document.querySelector('#status').textContent.includes('s old')", timeout=5_000
+        )
+        row = await page.locator("#status tr", has_text="overlay σ").text_content()
+        assert f"{sigma:.1f} px" in row, row
+        assert f"σ {sigma:.1f} px" in await page.locator("#figures").text_content()
         await viewer.close()
         await page.close()
 

@@ -16,7 +16,7 @@ const state = {
   frames: 0, fpsTimes: [], lastLatencyMs: null, latencies: [], offsetMs: null, pings: [],
   points: {}, frameSize: [640, 480], status: null, jog: null, reqId: 0, picked: [],
   reconnectMs: RECONNECT_MIN_MS, pendingHead: null, deadman: 0, lastReply: null,
-  ghost: null, ghostDrawn: false, sigma: null, run: null, timing: [],
+  ghost: null, ghostDrawn: false, viewAck: null, sigma: null, run: null, timing: [],
 };
 window.orbitar = state;  // for the browser tests and the curious
 
@@ -67,6 +67,7 @@ function onJson(msg) {
     if (!msg.ok) toast(`${msg.op}: ${msg.code} — ${msg.message || ""}`);
     return undefined;
   }
+  if (msg.type === "view") { state.viewAck = msg; return undefined; }
   if (msg.type === "deadman") { state.deadman += 1; toast(`stopped by the dead-man rule: ${msg.why}`); }
   if (msg.type === "error") toast(`${msg.code}`);
   return undefined;
@@ -101,30 +102,41 @@ function onPong(msg) {
 
 // ---- frames ------------------------------------------------------------------------------
 
+// A frame is acknowledged once drawn: the daemon sends the next only then, so at most one frame
+// is in flight (benchmarks/bench_station.py measured acknowledging on arrival instead: on a
+// loaded 2-core machine the extra frames received and decoded cost more than the overlap saved).
+// createImageBitmap decodes off the main thread.
 async function onFrame(buffer) {
   const receivedMs = performance.now();
   const view = new DataView(buffer);
   const headLen = view.getUint32(0);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
   const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
-  let latency = null; let decodedMs = null;
+  let latency = null;
   try {
     const bitmap = await createImageBitmap(blob);
-    decodedMs = performance.now();
+    const decodedMs = performance.now();
     const canvas = $("view");
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
     }
-    canvas.getContext("2d").drawImage(bitmap, 0, 0);
+    canvas.getContext("2d", { alpha: false }).drawImage(bitmap, 0, 0);
     bitmap.close();
-    if (state.offsetMs !== null) latency = performance.now() + state.offsetMs - header.exposure_ms;
+    latency = drawn(header, receivedMs, decodedMs);
+  } catch (err) {
+    toast(`frame ${header.index} not shown: ${err}`);
   } finally {
     send({ type: "ack", index: header.index, latency_ms: latency });
   }
-  if (state.offsetMs !== null) {  // where the time went: daemon, network, decode, draw
+}
+
+function drawn(header, receivedMs, decodedMs) {
+  const now = performance.now();
+  const latency = state.offsetMs === null ? null : now + state.offsetMs - header.exposure_ms;
+  if (latency !== null) {  // where the time went: daemon, network, decode, draw
     const t = {
       daemon: header.age_at_send_ms, transit: receivedMs + state.offsetMs - header.sent_ms,
-      decode: decodedMs - receivedMs, draw: performance.now() - decodedMs, total: latency,
+      decode: decodedMs - receivedMs, draw: now - decodedMs, total: latency,
     };
     state.timing.push(t); if (state.timing.length > TIMING_KEEP) state.timing.shift();
   }
@@ -132,15 +144,19 @@ async function onFrame(buffer) {
   state.ghostDrawn = Boolean(header.ghost);
   state.lastLatencyMs = latency;
   if (latency !== null) { state.latencies.push(latency); if (state.latencies.length > 300) state.latencies.shift(); }
-  const now = performance.now(); state.fpsTimes.push(now);
+  state.fpsTimes.push(now);
   while (state.fpsTimes.length && state.fpsTimes[0] < now - 2000) state.fpsTimes.shift();
   const homed = !state.status || (state.status.link || {}).homed !== false;
   let note = header.registered ? "" : "no pose for this frame: overlay withheld";
   if (header.registered && !homed) note = "not homed: the overlay assumes the trolley at home until Home is run";
   $("ghost-note").textContent = state.ghost && header.registered && !header.ghost ? "(none yet: no drift correction running)" : "";
-  $("viewnote").textContent = note;
+  setText($("viewnote"), note);
   $("viewnote").hidden = !note;
+  return latency;
 }
+
+// Writing only what changed keeps the page from re-laying out for nothing on every frame.
+function setText(el, text) { if (el.textContent !== text) el.textContent = text; }
 
 function pageFps() {
   const t = state.fpsTimes;
@@ -222,7 +238,7 @@ canvas.addEventListener("pointerdown", (ev) => {
 // so the scene follows the finger whatever the lens and the view's size on screen.
 function dragDeg(d, ev) {
   const rect = canvas.getBoundingClientRect(); const cam = state.info.camera;
-  const sx = state.frameSize[0] / rect.width; const sy = state.frameSize[1] / rect.height;
+  const sx = cam.width / rect.width; const sy = cam.height / rect.height;  // camera pixels
   const u = (x) => (x - rect.left) * sx; const v = (y) => (y - rect.top) * sy;
   const angle = (a, b, c, f) => ((Math.atan((b - c) / f) - Math.atan((a - c) / f)) * 180) / Math.PI;
   return [angle(u(d.x), u(ev.clientX), cam.u0, cam.fx), angle(v(d.y), v(ev.clientY), cam.v0, cam.fy)];
@@ -391,11 +407,16 @@ function onStatus(msg) {
     ["encoder", `${fmt(stn.encode_fps, 1, " fps")}, ${fmt(stn.encode_cpu_ms, 1, " ms")}/frame, dropped ${stn.encode_dropped ?? 0}`],
     ["viewers", `${stn.viewers ?? 0}`],
   ];
-  const table = $("status"); table.replaceChildren();
-  for (const [k, v, cls] of rows) {
-    const tr = document.createElement("tr"); const th = document.createElement("th"); const td = document.createElement("td");
-    th.textContent = k; td.textContent = v; if (cls) td.className = cls; tr.append(th, td); table.append(tr);
+  const table = $("status");
+  if (table.rows.length !== rows.length) {
+    table.replaceChildren();
+    for (let i = 0; i < rows.length; i++) table.append(document.createElement("tr"));
+    for (const tr of table.rows) tr.append(document.createElement("th"), document.createElement("td"));
   }
+  rows.forEach(([k, v, cls], i) => {  // in place: a status push re-lays out only what changed
+    const [th, td] = table.rows[i].cells;
+    setText(th, k); setText(td, v); if (td.className !== (cls || "")) td.className = cls || "";
+  });
   showFigures();
   const latched = ctrl.state === "ESTOP" || ctrl.state === "FAULT";
   const faults = (ctrl.fault_names || []).join(", ");
@@ -427,7 +448,7 @@ function showFigures() {
   const ctrl = ((state.status || {}).status || {}).controller || {};
   const sg = state.sigma; const age = sigmaAgeS();
   const sigma = !sg || sg.px === null ? "σ unknown" : `σ ${sg.px.toFixed(1)} px (${age === null ? "?" : age.toFixed(1)} s)`;
-  $("figures").textContent = `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")} · ${sigma}`;
+  setText($("figures"), `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")} · ${sigma}`);
 }
 
 function faultText(ctrl) {
