@@ -174,11 +174,41 @@ async def daemon_side_fps(loop: FrameLoop[Any], ws_url: str, count: int, seconds
 # permessage-deflate on, as aiohttp offers it and Chromium accepts, quality 80) beside it
 # without compression, at quality 80 and 70. Each is its own station on the same frame loop; a
 # station nobody watches draws nothing.
-VARIANTS = {
+VARIANTS: dict[str, dict[str, Any]] = {
     "before_deflate_q80": {"compress": True, "jpeg_quality": 80},
     "after_q80": {"compress": False, "jpeg_quality": 80},
     "after_q70": {"compress": False, "jpeg_quality": 70},
+    "tried_ack_on_arrival_q80": {"compress": False, "jpeg_quality": 80, "page": "ack_on_arrival"},
 }
+# Tried, not shipped: the page acknowledges a frame on arrival, so the daemon sends the next
+# during the decode; the page decodes the newest it has (one waiting at most).
+ACK_ON_ARRIVAL_JS = """(() => {
+  let decoding = false; let waiting = null; let last = null;
+  async function drawWaiting() {
+    decoding = true;
+    while (waiting) {
+      const { header, blob, receivedMs } = waiting; waiting = null;
+      const bitmap = await createImageBitmap(blob); const decodedMs = performance.now();
+      const canvas = document.getElementById("view");
+      if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+        canvas.width = bitmap.width; canvas.height = bitmap.height;
+      }
+      canvas.getContext("2d", { alpha: false }).drawImage(bitmap, 0, 0); bitmap.close();
+      last = drawn(header, receivedMs, decodedMs);
+    }
+    decoding = false;
+  }
+  orbitar.ws.onmessage = (ev) => {
+    if (typeof ev.data === "string") { onJson(JSON.parse(ev.data)); return; }
+    const receivedMs = performance.now(); const buffer = ev.data;
+    const headLen = new DataView(buffer).getUint32(0);
+    const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
+    const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
+    orbitar.ws.send(JSON.stringify({ type: "ack", index: header.index, latency_ms: last }));
+    last = null; waiting = { header, blob, receivedMs };
+    if (!decoding) drawWaiting();
+  };
+})()"""
 Measured = tuple[list[float], list[dict[str, float]], float]
 
 
@@ -192,6 +222,8 @@ async def latency_variants(
             page = await browser.new_page(viewport={"width": 1600, "height": 1100}, bypass_csp=True)
             await page.goto(f"http://127.0.0.1:{station.port}/#token={TOKEN}")
             await page.wait_for_function("orbitar.frames > 0", timeout=10_000)
+            if VARIANTS[name].get("page") == "ack_on_arrival":
+                await page.evaluate(ACK_ON_ARRIVAL_JS)
             await asyncio.sleep(2.5)  # clock offsets settle (pings every 2 s)
             await page.evaluate("orbitar.latencies = []; orbitar.frames = 0; orbitar.timing = []")
             await asyncio.sleep(seconds)

@@ -86,13 +86,7 @@ class Station:
         ghost_offset_mm: Callable[[], float | None] = lambda: None,
         hall: Callable[[], list[dict[str, Any]] | None] = lambda: None,
     ) -> None:
-        from host.service.wiring import (
-            build_camera,
-            build_model,
-            build_track,
-            rig_spec,
-            workpiece_pose,
-        )
+        from host.service.wiring import build_track, rig_spec  # wiring imports the daemon, and us
 
         self.config = config.ui
         self.full_config = config
@@ -104,14 +98,7 @@ class Station:
         self.parts = load_parts(
             sidecar_path(rig_spec(config).workpiece.model, config.ui.parts_path)
         )
-        renderer = ViewRenderer(
-            build_camera(config),
-            build_model(config),
-            workpiece_pose(config),
-            self.parts,
-            config.ui.jpeg_quality,
-        )
-        self.hub = FrameHub(renderer, config.ui.ghost)
+        self.hub = FrameHub(self._renderer(config), config.ui.ghost)
         self.info = station_info(config, self.track, self.parts)
         self.stats = {"pages": 0, "refused": 0, "deadman_stops": 0, "mjpeg_clients": 0}
         self.stats["cut_off"] = 0
@@ -124,6 +111,24 @@ class Station:
         self._runner: web.AppRunner | None = None
         self._status_task: asyncio.Task[None] | None = None
         self._streams: set[asyncio.Task[Any]] = set()  # MJPEG handlers, ended at shutdown
+
+    def _renderer(self, config: Config) -> ViewRenderer:
+        """The view's drawing from the rig file: camera, model, workpiece pose."""
+        from host.service.wiring import build_camera, build_model, workpiece_pose
+
+        model, T_w_p = build_model(config), workpiece_pose(config)
+        return ViewRenderer(build_camera(config), model, T_w_p, self.parts, config.ui.jpeg_quality)
+
+    def apply_rig(self, config: Config) -> None:
+        """A changed rig file (a calibration wrote it, or SIGHUP): draw with it, tell the pages."""
+        from host.service.wiring import build_track
+
+        self.full_config = config
+        self.track = build_track(config)
+        self.hub.renderer = self._renderer(config)  # the encoder takes it from its next frame
+        self.info = station_info(config, self.track, self.parts)
+        for session in self.sessions:
+            session.push_info(self.info)
 
     @property
     def url(self) -> str:

@@ -106,6 +106,10 @@ class PageSession:
             closer = [self._closer] if self._closer is not None else []
             await asyncio.gather(writer, deadman, *self._tasks, *closer, return_exceptions=True)
 
+    def push_info(self, info: dict[str, Any]) -> None:
+        """The rig changed: what the page was told at hello, again (never dropped)."""
+        self._reply({"type": "info", **info})
+
     def push_status(self, status: dict[str, Any]) -> None:
         """The newest status replaces one not yet sent."""
         self._status = status

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import struct
 import time
@@ -264,6 +265,25 @@ async def test_the_page_sets_its_ghost_and_reads_run_progress_and_reports(
         for path in bad:
             async with http.get(st.url.rstrip("/") + path) as reply:
                 assert reply.status == 404, path
+
+
+async def test_a_new_rig_file_reaches_the_drawing_and_the_pages(
+    station: tuple[Station, MemoryController],
+) -> None:
+    st, _ = station
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        assert (await hello(ws, VIEWER))["camera"]["fx"] == pytest.approx(300.0)
+        rig = rig_file(
+            "[camera]\nwidth = 320\nheight = 256\n[camera.intrinsics]\n"
+            "u0 = 161.0\nv0 = 128.0\nfx = 612.5\nfy = 611.0\nk1 = 0.0\nk2 = 0.0\n"
+        )
+        new = config_from_dict({"camera": {"source": "none"}, "rig": {"path": str(rig)},
+                                "ui": dataclasses.asdict(st.config)})  # fmt: skip
+        st.apply_rig(new)  # as the daemon does once a calibration is written
+        info = await next_json(ws, "info")
+        assert info["camera"]["fx"] == pytest.approx(612.5)
+        assert info["camera"]["u0"] == pytest.approx(161.0)
+        assert st.hub.renderer.camera.fy == pytest.approx(611.0)
 
 
 async def test_nothing_is_drawn_without_viewers() -> None:

@@ -68,6 +68,7 @@ function onJson(msg) {
     return undefined;
   }
   if (msg.type === "view") { state.viewAck = msg; return undefined; }
+  if (msg.type === "info") return onInfo(msg);
   if (msg.type === "deadman") { state.deadman += 1; toast(`stopped by the dead-man rule: ${msg.why}`); }
   if (msg.type === "error") toast(`${msg.code}`);
   return undefined;
@@ -85,6 +86,12 @@ function onHello(msg) {
   if (state.ghost === null) state.ghost = Boolean(msg.ghost);
   $("ghost").checked = state.ghost; sendView();
   ping();
+}
+
+// The rig file changed (a calibration was written): new intrinsics, limits and track plan.
+function onInfo(msg) {
+  state.info = { ...state.info, ...msg, role: state.info.role };
+  setupHead(msg.head_deg); drawPlan(msg.track);
 }
 
 function setConn(ok, text) {
