@@ -113,9 +113,12 @@ async def test_an_intrinsics_run_started_on_the_page_fills_the_bars_and_cancels(
         await page.screenshot(path=str(ARTIFACTS / "commissioning_running.png"), full_page=True)
         # A viewer sees the run but may neither start nor cancel one.
         assert await viewer.evaluate("document.body.classList.contains('viewer')")
-        await viewer.evaluate("op('commissioning_cancel')")
-        await viewer.wait_for_function("orbitar.lastReply && orbitar.lastReply.op !== undefined")
-        assert await viewer.evaluate("orbitar.lastReply.code") == "forbidden"
+        for request in ("calibrate_intrinsics", "commissioning_cancel"):
+            await viewer.evaluate(f"op('{request}', {{}})")
+            await viewer.wait_for_function(
+                f"orbitar.lastReply && orbitar.lastReply.op === '{request}'"
+            )
+            assert await viewer.evaluate("orbitar.lastReply.code") == "forbidden", request
         assert (await h.request("commissioning_status"))["state"] == "running"
         await viewer.screenshot(path=str(ARTIFACTS / "commissioning_viewer.png"), full_page=True)
         await page.locator("#run-cancel").click()

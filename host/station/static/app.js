@@ -630,7 +630,7 @@ function perViewRows(result) {
     const errors = [...result.per_view_rms_px];
     for (let j = 0; j < Math.max(kept, errors.length); j++) {
       if (dropped.has(j)) rows.push({ label: `view ${j + 1}`, value: null, outlier: true, unit: "px" });
-      else rows.push({ label: `view ${j + 1}`, value: errors.shift(), outlier: false, unit: "px" });
+      else rows.push({ label: `view ${j + 1}`, value: errors.length ? errors.shift() : null, outlier: false, unit: "px" });
     }
   } else if (Array.isArray(result.residuals_mm)) {
     result.residuals_mm.forEach((r, i) => {
@@ -684,8 +684,9 @@ function showRun(run) {
     const tr = document.createElement("tr"); tr.dataset.view = r.label;
     const name = document.createElement("td"); name.textContent = r.label;
     const cell = document.createElement("td"); cell.style.width = "100%";
-    const text = r.outlier ? "outlier, dropped" : `${r.value.toFixed(3)} ${r.unit}`;
-    cell.append(bar("", r.outlier ? 1 : r.value / top, r.outlier ? "outlier" : "ok", null, text));
+    let text = r.outlier ? "outlier, dropped" : "not reported";
+    if (r.value !== null) text = `${r.value.toFixed(3)} ${r.unit}`;
+    cell.append(bar("", r.outlier ? 1 : (r.value ?? 0) / top, r.outlier ? "outlier" : "ok", null, text));
     if (r.outlier) { tr.classList.add("outlier"); name.className = "outlier"; }
     tr.append(name, cell); table.append(tr);
   }
