@@ -14,8 +14,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import tempfile
 import threading
 import time
+from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import aiohttp
@@ -66,17 +69,33 @@ class SyntheticCamera:
         self._closed.set()
 
 
-def bench_config(width: int, height: int) -> Config:
-    """The paper's camera at full resolution, the station on a free port."""
+RIG = """
+[head]
+tilt_max_deg = 80.0
+[camera]
+width = {width}
+height = {height}
+[camera.intrinsics]
+u0 = {u0}
+v0 = {v0}
+fx = 1400.0
+fy = 1400.0
+[workpiece.frame]
+matrix = [[1, 0, 0, -300.0], [0, 1, 0, -300.0], [0, 0, 1, 0], [0, 0, 0, 1]]
+"""
+
+
+def bench_config(width: int, height: int, directory: Path, **ui: Any) -> Config:
+    """The paper's camera at full resolution (rig file in `directory`), the station on port 0."""
+    rig = directory / "rig.toml"
+    rig.write_text(RIG.format(width=width, height=height, u0=width / 2, v0=height / 2))
     return config_from_dict(
         {
-            "camera": {"source": "none", "width": width, "height": height,
-                       "u0": width / 2, "v0": height / 2, "fx": 1400.0, "fy": 1400.0},
-            "model": {"position_mm": [-300.0, -300.0, 0.0]},
-            "head": {"tilt_max_deg": 80.0},
-            "ui": {"enabled": True, "port": 0, "operator_token": TOKEN},
+            "camera": {"source": "none"},
+            "rig": {"path": str(rig)},
+            "ui": {"enabled": True, "port": 0, "operator_token": TOKEN, **ui},
         }
-    )  # fmt: skip
+    )
 
 
 def registrar(config: Config) -> Any:
@@ -151,6 +170,71 @@ async def daemon_side_fps(loop: FrameLoop[Any], ws_url: str, count: int, seconds
     return fps
 
 
+# The live view compared side by side for one viewer: the station as it was (WebSocket
+# permessage-deflate on, as aiohttp offers it and Chromium accepts, quality 80) beside it
+# without compression, at quality 80 and 70. Each is its own station on the same frame loop; a
+# station nobody watches draws nothing.
+VARIANTS: dict[str, dict[str, Any]] = {
+    "before_deflate_q80": {"compress": True, "jpeg_quality": 80},
+    "after_q80": {"compress": False, "jpeg_quality": 80},
+    "after_q70": {"compress": False, "jpeg_quality": 70},
+    "tried_ack_on_arrival_q80": {"compress": False, "jpeg_quality": 80, "page": "ack_on_arrival"},
+}
+# Tried, not shipped: the page acknowledges a frame on arrival, so the daemon sends the next
+# during the decode; the page decodes the newest it has (one waiting at most).
+ACK_ON_ARRIVAL_JS = """(() => {
+  let decoding = false; let waiting = null; let last = null;
+  async function drawWaiting() {
+    decoding = true;
+    while (waiting) {
+      const { header, blob, receivedMs } = waiting; waiting = null;
+      const bitmap = await createImageBitmap(blob); const decodedMs = performance.now();
+      const canvas = document.getElementById("view");
+      if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
+        canvas.width = bitmap.width; canvas.height = bitmap.height;
+      }
+      canvas.getContext("2d", { alpha: false }).drawImage(bitmap, 0, 0); bitmap.close();
+      last = drawn(header, receivedMs, decodedMs);
+    }
+    decoding = false;
+  }
+  orbitar.ws.onmessage = (ev) => {
+    if (typeof ev.data === "string") { onJson(JSON.parse(ev.data)); return; }
+    const receivedMs = performance.now(); const buffer = ev.data;
+    const headLen = new DataView(buffer).getUint32(0);
+    const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
+    const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
+    orbitar.ws.send(JSON.stringify({ type: "ack", index: header.index, latency_ms: last }));
+    last = null; waiting = { header, blob, receivedMs };
+    if (!decoding) drawWaiting();
+  };
+})()"""
+Measured = tuple[list[float], list[dict[str, float]], float]
+
+
+async def latency_variants(
+    browser: Any, stations: dict[str, Station], seconds: float, rounds: int
+) -> dict[str, Measured]:
+    """One viewer per variant in turn, interleaved over `rounds` (the machine's load drifts)."""
+    out: dict[str, Measured] = {k: ([], [], 0.0) for k in stations}
+    for _ in range(rounds):
+        for name, station in stations.items():
+            page = await browser.new_page(viewport={"width": 1600, "height": 1100}, bypass_csp=True)
+            await page.goto(f"http://127.0.0.1:{station.port}/#token={TOKEN}")
+            await page.wait_for_function("orbitar.frames > 0", timeout=10_000)
+            if VARIANTS[name].get("page") == "ack_on_arrival":
+                await page.evaluate(ACK_ON_ARRIVAL_JS)
+            await asyncio.sleep(2.5)  # clock offsets settle (pings every 2 s)
+            await page.evaluate("orbitar.latencies = []; orbitar.frames = 0; orbitar.timing = []")
+            await asyncio.sleep(seconds)
+            lat, timing, frames = out[name]
+            lat += [float(v) for v in await page.evaluate("orbitar.latencies")]
+            timing += await page.evaluate("orbitar.timing")
+            out[name] = (lat, timing, frames + float(await page.evaluate("orbitar.frames")))
+            await page.close()
+    return out
+
+
 def pct(values: list[float], q: float) -> float:
     """A percentile (nan when empty)."""
     return float(np.percentile(values, q)) if values else float("nan")
@@ -160,11 +244,23 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     """The whole measurement."""
     from playwright.async_api import async_playwright
 
-    config = bench_config(width, height)
+    directory = Path(tempfile.mkdtemp(prefix="bench-station-"))
+    config = bench_config(width, height, directory)
     station = Station(config, OpContext(None))
     await station.start()
+    others = {}
+    for name, variant in VARIANTS.items():
+        other = Station(
+            bench_config(width, height, directory, jpeg_quality=variant["jpeg_quality"]),
+            OpContext(None),
+        )
+        other.ws_compress = bool(variant["compress"])
+        await other.start()
+        others[name] = other
     source = SyntheticCamera(width, height, fps)
-    loop: FrameLoop[Registration] = FrameLoop(source, registrar(config), [station.on_registration])
+    outputs: list[Callable[[Registration], None]] = [station.on_registration]
+    outputs += [o.on_registration for o in others.values()]
+    loop: FrameLoop[Registration] = FrameLoop(source, registrar(config), outputs)
     frames_task = asyncio.create_task(loop.run())
     url = f"http://127.0.0.1:{station.port}/#token={TOKEN}"
     try:
@@ -185,7 +281,9 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
                 pages.append(page)
             await asyncio.sleep(2.0)  # clock offsets settle (pings every 2 s)
             for page in pages:
-                await page.evaluate("orbitar.latencies = []; orbitar.frames = 0")
+                await page.evaluate(
+                    "orbitar.latencies = []; orbitar.frames = 0; orbitar.timing = []"
+                )
             cpu0, hub0 = os.times(), station.hub.stats.encoded
             mjpeg: list[float] = []
             mjpeg_url = f"http://127.0.0.1:{station.port}/mjpeg?token={TOKEN}"
@@ -195,15 +293,19 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
             cpu1, hub1 = os.times(), station.hub.stats.encoded
             lat: list[float] = []
             delivered = []
+            timing: list[dict[str, float]] = []
             for page in pages:
                 lat += [float(v) for v in await page.evaluate("orbitar.latencies")]
                 delivered.append(float(await page.evaluate("orbitar.frames")) / seconds)
+                timing += await page.evaluate("orbitar.timing")
+            variants = await latency_variants(browser, others, seconds, 2)
             await browser.close()
     finally:
         loop.stop()
         source.close()
         await frames_task
-        await station.close()
+        for st in (station, *others.values()):
+            await st.close()
     encoded = max(1, hub1 - hub0)
     cpu_s = (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)
     print(f"resolution: {width}x{height}")
@@ -211,6 +313,13 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     print(f"viewers: {viewers}")
     print(f"ws_latency_ms_p50: {pct(lat, 50):.1f}")
     print(f"ws_latency_ms_p95: {pct(lat, 95):.1f}")
+    breakdown("ws", timing)
+    for name, (v_lat, v_timing, v_frames) in variants.items():
+        print(f"one_viewer_{name}_latency_ms_p50: {pct(v_lat, 50):.1f}")
+        print(f"one_viewer_{name}_latency_ms_p95: {pct(v_lat, 95):.1f}")
+        print(f"one_viewer_{name}_delivered_fps: {v_frames / (2 * seconds):.1f}")
+        print(f"one_viewer_{name}_encode_cpu_ms: {others[name].hub.stats.cpu_ms_mean():.2f}")
+        breakdown(f"one_viewer_{name}", v_timing)
     print(f"mjpeg_latency_ms_p50: {pct(mjpeg, 50):.1f}")
     print(f"mjpeg_latency_ms_p95: {pct(mjpeg, 95):.1f}")
     print(f"ws_delivered_fps_per_viewer: {np.mean(delivered):.1f}")
@@ -228,6 +337,14 @@ async def run(seconds: float, fps: float, viewers: int, width: int, height: int)
     print(f"registration_latency_ms_p50: {loop.stats.latency_ms(0.5):.1f}  # exposure to pose")
     print(f"frames_dropped_by_loop: {loop.stats.dropped}")
     print(f"encoder_dropped: {station.hub.stats.dropped}")
+
+
+def breakdown(prefix: str, timing: list[dict[str, float]]) -> None:
+    """Where the time went: exposure to send (daemon), send to receipt, decode, draw."""
+    for part in ("daemon", "transit", "decode", "draw"):
+        values = [float(t[part]) for t in timing if t.get(part) is not None]
+        print(f"{prefix}_{part}_ms_p50: {pct(values, 50):.1f}")
+        print(f"{prefix}_{part}_ms_p95: {pct(values, 95):.1f}")
 
 
 def main() -> None:

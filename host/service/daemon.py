@@ -247,6 +247,8 @@ class Daemon:
         if not changed or apply is None:
             return []
         apply(new)
+        if self.station is not None:  # its drawing and the page's drag use the rig's camera
+            self.station.apply_rig(new)
         self.config = dataclasses.replace(self.config, rig=new.rig)
         return ["rig"]
 

@@ -5,6 +5,8 @@ only swaps a reference, so it never waits. One encoder task takes the newest sub
 and encodes it in a worker thread, and offers the JPEG to every viewer's one-frame slot; a
 viewer that has not taken the previous one loses it (counted), so a slow or stalled client holds
 at most one frame and never slows anything else. Nothing is drawn while nobody watches.
+Each viewer says whether it wants the ghost (the encoder-only registration) drawn; a view is
+drawn once per choice its viewers have made, so only a mix of choices costs a second encode.
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ WINDOW = 256  # recent frames kept for the rates and percentiles
 class ViewerSlot:
     """One viewer's mailbox: the newest encoded frame it has not taken yet."""
 
-    def __init__(self) -> None:
+    def __init__(self, ghost: bool = True) -> None:
+        self.ghost = ghost  # draw the encoder-only registration in this viewer's frames
         self.frame: EncodedView | None = None
         self.offered = 0
         self.dropped = 0  # frames replaced before this viewer took them
@@ -80,10 +83,12 @@ class HubStats:
 class FrameHub:
     """Newest view in, newest JPEG out to each viewer."""
 
-    def __init__(self, renderer: ViewRenderer) -> None:
+    def __init__(self, renderer: ViewRenderer, ghost: bool = True) -> None:
         self.renderer = renderer
+        self.ghost = ghost  # the default of a new viewer (`[ui] ghost`)
         self.stats = HubStats()
         self.latest: EncodedView | None = None
+        self._latest_by_ghost: dict[bool, EncodedView] = {}
         self._viewers: set[ViewerSlot] = set()
         self._pending: ViewInput | None = None
         self._wake = asyncio.Event()
@@ -116,12 +121,13 @@ class FrameHub:
         self.stats.submitted += 1
         self._wake.set()
 
-    def attach(self) -> ViewerSlot:
+    def attach(self, ghost: bool | None = None) -> ViewerSlot:
         """A new viewer; it gets the latest frame at once, so the first image is immediate."""
-        slot = ViewerSlot()
+        slot = ViewerSlot(self.ghost if ghost is None else ghost)
         self._viewers.add(slot)
-        if self.latest is not None:
-            slot.offer(self.latest)
+        first = self._latest_by_ghost.get(slot.ghost, self.latest)
+        if first is not None:
+            slot.offer(first)
         return slot
 
     def detach(self, slot: ViewerSlot) -> None:
@@ -129,7 +135,7 @@ class FrameHub:
         self._viewers.discard(slot)
 
     async def _run(self) -> None:
-        """Encode the newest view whenever there is one."""
+        """Encode the newest view whenever there is one, once per ghost choice watching."""
         loop = asyncio.get_running_loop()
         while True:
             await self._wake.wait()
@@ -137,21 +143,33 @@ class FrameHub:
             view, self._pending = self._pending, None
             if view is None:
                 continue
-            try:
-                frame = await loop.run_in_executor(self._executor, self.renderer.render, view)
-            except Exception:
-                self.stats.failed += 1
-                if self.stats.failed <= 3:
-                    log.exception("station frame %d could not be drawn", view.index)
-                continue
-            self._deliver(frame)
+            frames = []
+            for ghost in sorted({slot.ghost for slot in self._viewers}, reverse=True):
+                try:
+                    frame = await loop.run_in_executor(
+                        self._executor, self.renderer.render, view, ghost
+                    )
+                except Exception:
+                    self.stats.failed += 1
+                    if self.stats.failed <= 3:
+                        log.exception("station frame %d could not be drawn", view.index)
+                    break
+                frames.append((ghost, frame))
+            else:
+                if frames:
+                    self._deliver(frames)
 
-    def _deliver(self, frame: EncodedView) -> None:
-        """Offer a fresh JPEG to every viewer."""
-        self.latest = frame
+    def _deliver(self, frames: list[tuple[bool, EncodedView]]) -> None:
+        """Offer a fresh JPEG to every viewer, the one drawn for its ghost choice."""
+        first = frames[0][1]
+        self.latest = first
         self.stats.encoded += 1
-        self.stats.cpu_ms.append(frame.cpu_ms)
+        self.stats.cpu_ms.append(sum(f.cpu_ms for _, f in frames))
         self.stats.encoded_ns.append(time.monotonic_ns())
-        self.stats.ready_ms.append((frame.encoded_ns - frame.exposure_ns) / 1e6)
+        self.stats.ready_ms.append((first.encoded_ns - first.exposure_ns) / 1e6)
+        by_ghost = dict(frames)
+        self._latest_by_ghost.update(by_ghost)
         for slot in self._viewers:
-            slot.offer(frame)
+            frame = by_ghost.get(slot.ghost)
+            if frame is not None:  # None: it chose while this view was drawn; the next is its
+                slot.offer(frame)

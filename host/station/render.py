@@ -56,6 +56,7 @@ class EncodedView:
     cpu_ms: float  # this thread's CPU time to draw and encode
     encoded_ns: int  # host monotonic ns when the JPEG was ready
     registered: bool
+    ghost: bool = False  # the encoder-only registration is drawn in it
 
 
 class ViewRenderer:
@@ -73,19 +74,19 @@ class ViewRenderer:
         self.T_w_p = np.asarray(T_w_p, dtype=np.float64)
         self.parts = parts
         self.jpeg_quality = jpeg_quality
-        self.show_ghost = True
         self._overlay = WireframeOverlay(camera, model)
         self._names = [p.name for p in parts.points]
         self._points_p = np.array([p.position_mm for p in parts.points], dtype=np.float64)
         self._background: Image | None = None
 
-    def render(self, view: ViewInput) -> EncodedView:
-        """Draw the overlay on a copy of the image and encode it."""
+    def render(self, view: ViewInput, ghost: bool = True) -> EncodedView:
+        """Draw the overlay (with the ghost, if asked and known) on a copy and encode it."""
         t0 = time.thread_time_ns()
         image = self._canvas(view.image)
         points: dict[str, tuple[float, float]] = {}
+        ghost = ghost and view.T_w_c is not None and view.T_w_c_ghost is not None
         if view.T_w_c is not None:
-            if self.show_ghost and view.T_w_c_ghost is not None:
+            if ghost and view.T_w_c_ghost is not None:
                 self._overlay.draw(image, self._T_c_p(view.T_w_c_ghost), GHOST_STYLE)
             T_c_p = self._T_c_p(view.T_w_c)
             self._overlay.draw(image, T_c_p, MODEL_STYLE)
@@ -106,6 +107,7 @@ class ViewRenderer:
             cpu_ms,
             time.monotonic_ns(),
             view.T_w_c is not None,
+            ghost,
         )
 
     def project_points(self, T_c_p: FloatArray) -> dict[str, tuple[float, float]]:

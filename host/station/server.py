@@ -14,6 +14,8 @@ import contextlib
 import hmac
 import logging
 import math
+import re
+import secrets
 import ssl
 import time
 from collections import deque
@@ -24,6 +26,8 @@ from typing import Any
 import numpy as np
 from aiohttp import web
 
+from host.commissioning.coverage import MIN_PROGRESS
+from host.commissioning.ops import COMMISSIONING_OPS
 from host.config import Config
 from host.config_ui import UiConfig
 from host.control.api import PoseSample
@@ -53,11 +57,26 @@ SECURITY_HEADERS = {
     "Referrer-Policy": "no-referrer",
     "Cache-Control": "no-store",
 }
+# A commissioning report (host.commissioning.report) is static HTML with its own inline style.
+REPORT_HEADERS = {
+    **SECURITY_HEADERS,
+    "Content-Security-Policy": (
+        "default-src 'none'; img-src 'self'; style-src 'unsafe-inline'; frame-ancestors 'none'"
+    ),
+}
+REPORT_RUN = re.compile(r"[0-9A-Za-z][0-9A-Za-z._-]{0,120}")  # report.run_dir's names
+REPORT_FILE = re.compile(r"index\.html|results\.json|figure[0-9]{1,3}\.png")
+# The runs a page can start: every commissioning op but the two that follow and end them.
+RUN_OPS = [
+    op for op in COMMISSIONING_OPS if op not in ("commissioning_status", "commissioning_cancel")
+]
 StatusProvider = Callable[[], Mapping[str, Any]]
 
 
 class Station:
     """The station's HTTP server, its frame hub and its pages."""
+
+    ws_compress = False  # True only for the benchmark's before-and-after
 
     def __init__(
         self,
@@ -67,13 +86,7 @@ class Station:
         ghost_offset_mm: Callable[[], float | None] = lambda: None,
         hall: Callable[[], list[dict[str, Any]] | None] = lambda: None,
     ) -> None:
-        from host.service.wiring import (
-            build_camera,
-            build_model,
-            build_track,
-            rig_spec,
-            workpiece_pose,
-        )
+        from host.service.wiring import build_track, rig_spec  # wiring imports the daemon, and us
 
         self.config = config.ui
         self.full_config = config
@@ -85,25 +98,37 @@ class Station:
         self.parts = load_parts(
             sidecar_path(rig_spec(config).workpiece.model, config.ui.parts_path)
         )
-        renderer = ViewRenderer(
-            build_camera(config),
-            build_model(config),
-            workpiece_pose(config),
-            self.parts,
-            config.ui.jpeg_quality,
-        )
-        renderer.show_ghost = config.ui.ghost
-        self.hub = FrameHub(renderer)
+        self.hub = FrameHub(self._renderer(config), config.ui.ghost)
         self.info = station_info(config, self.track, self.parts)
         self.stats = {"pages": 0, "refused": 0, "deadman_stops": 0, "mjpeg_clients": 0}
         self.stats["cut_off"] = 0
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self.port: int | None = None
+        # Report links carry this instead of a token: only pages that said hello are told it.
+        self.reports_key = secrets.token_urlsafe(18)
         self.sessions: set[PageSession] = set()
         self._last_frame_ns = 0
         self._runner: web.AppRunner | None = None
         self._status_task: asyncio.Task[None] | None = None
         self._streams: set[asyncio.Task[Any]] = set()  # MJPEG handlers, ended at shutdown
+
+    def _renderer(self, config: Config) -> ViewRenderer:
+        """The view's drawing from the rig file: camera, model, workpiece pose."""
+        from host.service.wiring import build_camera, build_model, workpiece_pose
+
+        model, T_w_p = build_model(config), workpiece_pose(config)
+        return ViewRenderer(build_camera(config), model, T_w_p, self.parts, config.ui.jpeg_quality)
+
+    def apply_rig(self, config: Config) -> None:
+        """A changed rig file (a calibration wrote it, or SIGHUP): draw with it, tell the pages."""
+        from host.service.wiring import build_track
+
+        self.full_config = config
+        self.track = build_track(config)
+        self.hub.renderer = self._renderer(config)  # the encoder takes it from its next frame
+        self.info = station_info(config, self.track, self.parts)
+        for session in self.sessions:
+            session.push_info(self.info)
 
     @property
     def url(self) -> str:
@@ -119,6 +144,7 @@ class Station:
         app.router.add_get("/ws", self._websocket)
         app.router.add_get("/mjpeg", self._mjpeg)
         app.router.add_get("/frame.jpg", self._snapshot)
+        app.router.add_get("/reports/{key}/{run}/{name}", self._report)
         app.router.add_static("/static/", STATIC_DIR, follow_symlinks=False)
         app.on_shutdown.append(self._close_pages)
         self._runner = web.AppRunner(
@@ -188,7 +214,29 @@ class Station:
             "frames": dict(self.extra_status()),
             "station": self.station_stats(),
             "hall": self.hall(),
+            "commissioning": await self.commissioning(),
         }
+
+    async def commissioning(self) -> dict[str, Any]:
+        """The current (or last) commissioning run, with a link to its report once written."""
+        body = await self.dispatch(Role.VIEWER, "commissioning_status", {})
+        if not body["ok"]:
+            return {"state": "unavailable", "reason": (body.get("error") or {}).get("message")}
+        run = dict(body.get("result") or {})
+        result = run.get("result")
+        if isinstance(result, dict) and isinstance(result.get("report"), str):
+            run["report_url"] = self._report_url(result["report"])
+        return run
+
+    def _report_url(self, path: str) -> str | None:
+        """The station's address of a report page written under the report root, else None."""
+        root = getattr(getattr(self.context, "commissioning", None), "report_root", None)
+        if root is None:
+            return None
+        page = Path(path).resolve()
+        if page.parent.parent != Path(root).resolve() or not REPORT_FILE.fullmatch(page.name):
+            return None
+        return f"/reports/{self.reports_key}/{page.parent.name}/{page.name}"
 
     def station_stats(self) -> dict[str, Any]:
         """The station's own counters."""
@@ -276,7 +324,9 @@ class Station:
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         """A page's live connection."""
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES)  # liveness: the page's pings
+        # liveness: the page's pings; no permessage-deflate: frames are JPEG, deflating them
+        # costs the daemon and the browser CPU for nothing (benchmarks/bench_station.py)
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, compress=self.ws_compress)
         await ws.prepare(request)
         session = PageSession(self, ws)
         self.sessions.add(session)
@@ -306,7 +356,8 @@ class Station:
             headers={"Content-Type": f"multipart/x-mixed-replace; boundary={MJPEG_BOUNDARY}"}
         )
         await response.prepare(request)
-        slot = self.hub.attach()
+        ghost = {"1": True, "0": False}.get(request.query.get("ghost", ""))  # else `[ui] ghost`
+        slot = self.hub.attach(ghost)
         self.stats["mjpeg_clients"] += 1
         task = asyncio.current_task()
         if task is not None:
@@ -336,6 +387,19 @@ class Station:
             raise web.HTTPServiceUnavailable(text="no frame yet (frames are drawn while watched)")
         return web.Response(body=frame.jpeg, content_type="image/jpeg")
 
+    async def _report(self, request: web.Request) -> web.StreamResponse:
+        """A commissioning report's page, figure or results (the key stands for a token)."""
+        key, run, name = (request.match_info[k] for k in ("key", "run", "name"))
+        if not hmac.compare_digest(key.encode(), self.reports_key.encode()):
+            raise web.HTTPNotFound()
+        root = getattr(getattr(self.context, "commissioning", None), "report_root", None)
+        if root is None or not REPORT_RUN.fullmatch(run) or not REPORT_FILE.fullmatch(name):
+            raise web.HTTPNotFound()
+        path = Path(root) / run / name
+        if not path.is_file():
+            raise web.HTTPNotFound()
+        return web.FileResponse(path)
+
     async def _close_pages(self, app: web.Application) -> None:
         """Daemon shutdown: close the pages (each stops its own jog) and the MJPEG streams."""
         for task in list(self._streams):
@@ -350,7 +414,8 @@ async def _security_headers(request: web.Request, handler: Any) -> web.StreamRes
     """No third-party anything: the page may load only from this daemon."""
     response: web.StreamResponse = await handler(request)
     if not response.prepared:
-        response.headers.update(SECURITY_HEADERS)
+        reports = request.path.startswith("/reports/")
+        response.headers.update(REPORT_HEADERS if reports else SECURITY_HEADERS)
     return response
 
 
@@ -366,7 +431,7 @@ def role_for_token(token: Any, ui: UiConfig) -> Role:
 
 def station_info(config: Config, track: Track, parts: Parts) -> dict[str, Any]:
     """What the page needs once: the camera size, the track plan, limits, the parts."""
-    from host.service.wiring import rig_spec  # wiring imports the daemon, which imports us
+    from host.service.wiring import build_camera, rig_spec  # wiring imports the daemon, and us
 
     n = max(2, math.ceil(track.length_mm / PLAN_STEP_MM) + 1)
     s = np.linspace(0.0, track.length_mm, n)
@@ -377,8 +442,16 @@ def station_info(config: Config, track: Track, parts: Parts) -> dict[str, Any]:
         for m in spec.track.marks.s_mm
     ]
     head = spec.head
+    cam = build_camera(config)  # the calibrated intrinsics: a drag turns the head by its angle
     return {
-        "camera": {"width": spec.camera.width, "height": spec.camera.height},
+        "camera": {
+            "width": spec.camera.width,
+            "height": spec.camera.height,
+            **{k: round(float(getattr(cam, k)), 4) for k in ("fx", "fy", "u0", "v0")},
+        },
+        "ghost": config.ui.ghost,
+        "runs": RUN_OPS,
+        "coverage_min": dict(MIN_PROGRESS),  # what an intrinsics verdict asks of each bar
         "track": {
             "length_mm": round(track.length_mm, 3),
             "closed": track.closed,

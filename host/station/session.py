@@ -2,7 +2,8 @@
 
 Messages from the page are JSON: `hello` (the token, first), `op` (a control operation, run
 as for the control socket, through `Station.dispatch`), `hold` (the jog dead-man's
-heartbeat), `ack` (the page decoded a frame: send the next), `ping` (clock offset). To the page:
+heartbeat), `ack` (the page decoded a frame: send the next), `ping` (clock offset), `view`
+(this page's view choices: the ghost on or off; not an operation, it moves nothing). To the page:
 JSON replies and status, and binary frames: a 4-byte big-endian header length, a JSON header
 (index, exposure time, feature points in view) and the JPEG.
 
@@ -57,6 +58,7 @@ def frame_message(frame: EncodedView, sent_ns: int) -> bytes:
             "width": frame.width,
             "height": frame.height,
             "registered": frame.registered,
+            "ghost": frame.ghost,
             "points": frame.points_uv,
         }
     ).encode()
@@ -103,6 +105,10 @@ class PageSession:
                 await self._deadman_stop("page disconnected")
             closer = [self._closer] if self._closer is not None else []
             await asyncio.gather(writer, deadman, *self._tasks, *closer, return_exceptions=True)
+
+    def push_info(self, info: dict[str, Any]) -> None:
+        """The rig changed: what the page was told at hello, again (never dropped)."""
+        self._reply({"type": "info", **info})
 
     def push_status(self, status: dict[str, Any]) -> None:
         """The newest status replaces one not yet sent."""
@@ -156,6 +162,8 @@ class PageSession:
             self._reply({"type": "pong", "t": data.get("t"), "host_ms": time.monotonic_ns() / 1e6})
         elif kind == "op":
             self._start_op(data)
+        elif kind == "view":
+            self._on_view(data)
         else:
             self._reply({"type": "error", "code": "bad_request", "message": f"type {kind!r}"})
 
@@ -210,6 +218,15 @@ class PageSession:
         """Close a page that does not read what it asked for."""
         log.warning("station page cut off: it does not read its replies")
         await self.ws.close(code=1008, message=b"replies not read")
+
+    def _on_view(self, data: dict[str, Any]) -> None:
+        """The page's choice of what its frames show (any role: it changes only this page)."""
+        ghost = data.get("ghost")
+        if not isinstance(ghost, bool) or self._slot is None:
+            self._reply({"type": "error", "code": "bad_request", "message": "view: ghost = bool"})
+            return
+        self._slot.ghost = ghost
+        self._reply({"type": "view", "ghost": ghost})
 
     def _on_ack(self, data: dict[str, Any]) -> None:
         """The page has drawn the frame: record its latency, allow the next."""

@@ -18,6 +18,7 @@ from host.calibration.board import BoardSpec
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap, RangeTap
 from host.config import Config, ControlConfig
+from host.config_ui import UiConfig
 from host.control.client import ControlClient
 from host.frames.sources import Frame
 from host.geometry.camera import CameraModel
@@ -205,8 +206,10 @@ class Harness:
 
 
 @asynccontextmanager
-async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterator[Harness]:
-    """A daemon on the fake controller with the rendered board; yields once it serves."""
+async def sim_daemon(
+    tmp: Path, seed: int, blur_mm: float = 0.0, ui: UiConfig | None = None
+) -> AsyncIterator[Harness]:
+    """A daemon on the fake controller with the rendered board (and `ui`'s station, if given)."""
     rng = np.random.default_rng(seed)
     lens, rig = true_lens(rng), true_rig(rng)
     placed = PlacedBoard(BOARD.make(), board_pose(rng))
@@ -229,7 +232,9 @@ async def sim_daemon(tmp: Path, seed: int, blur_mm: float = 0.0) -> AsyncIterato
     ranges = RangeTap()
     env.ranges = lambda: ranges
     ranging = asyncio.create_task(FakeRangefinder(loop, true_T_w_p, ranges, seed).run())
-    config = dataclasses.replace(Config(), control=ControlConfig(socket_path=str(tmp / "ctl.sock")))
+    config = dataclasses.replace(
+        Config(), control=ControlConfig(socket_path=str(tmp / "ctl.sock")), ui=ui or UiConfig()
+    )
     daemon = Daemon(config, lambda c, t: fake, lambda c, ctl, sink, t: loop, commissioning=env)
     task = asyncio.create_task(daemon.run())
     try:

@@ -180,6 +180,19 @@ async def test_page_loads_offline_and_the_overlay_sits_on_the_projection(
     distance = float(np.linalg.norm(by_name["P1"] - by_name["P3"]))
     assert f"P1 → P3: {distance:.1f} mm" in await page.locator("#measure").text_content()
     await page.screenshot(path=str(ARTIFACTS / "measure.png"), full_page=True)
+    # The predicted overlay σ as the status op has it: a number with its age, or unknown.
+    sigma = (await ctl.request("status"))["service"]["overlay_sigma_px"]
+    row = await page.locator("#status tr", has_text="overlay σ").text_content()
+    if sigma is None:
+        assert "unknown" in row, row
+    else:
+        assert f"{sigma:.1f} px" in row, row
+        assert "s old" in row, row
+    # The ghost is this page's choice: off, and the daemon draws it no more in its frames.
+    await page.locator("#ghost").uncheck()
+    await page.wait_for_function("orbitar.viewAck && orbitar.viewAck.ghost === false")
+    await frames_after(page, 3)
+    assert await page.evaluate("orbitar.ghostDrawn") is False
     await page.close()
 
 
@@ -252,17 +265,30 @@ async def test_dragging_the_view_turns_the_head(
     page = await open_page(browser, station_rig.url())
     await page.wait_for_function("orbitar.connected && orbitar.status !== null")
     box = await page.locator("#view").bounding_box()
-    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    x, y = box["x"] + box["width"] * 0.7, box["y"] + box["height"] * 0.4
     await page.mouse.move(x, y)
     await page.mouse.down()
-    await page.mouse.move(x - 100, y + 50, steps=5)  # 0.1° a pixel: pan +10°, tilt +5°
+    await page.mouse.move(x - 100, y + 50, steps=5)
     await page.mouse.up()
+    # The scene follows the finger: the head turns by the angle the dragged pixels subtend
+    # through the rig file's intrinsics, whatever size the view has on screen.
+    camera = build_camera(load_config(station_rig.dir / "orbitar.toml"))
+    su, sv = camera.width / box["width"], camera.height / box["height"]
+
+    def subtended(a: float, b: float, centre: float, f: float) -> float:
+        return float(np.arctan((b - centre) / f) - np.arctan((a - centre) / f))
+
+    u, v = (x - box["x"]) * su, (y - box["y"]) * sv
+    pan = -subtended(u, u - 100 * su, camera.u0, camera.fx)
+    tilt = subtended(v, v + 50 * sv, camera.v0, camera.fy)
 
     async def turned() -> bool:
         head = (await controller(ctl))["head_rad"]
-        return bool(abs(head[0] - np.radians(10.0)) + abs(head[1] - np.radians(5.0)) < 0.01)
+        return bool(abs(head[0] - pan) + abs(head[1] - tilt) < 2 * HEAD_TOL_RAD)
 
-    await until(turned, 10.0, "the head at pan 10°, tilt 5°")
+    await until(
+        turned, 10.0, f"the head at pan {np.degrees(pan):.2f}°, tilt {np.degrees(tilt):.2f}°"
+    )
     await page.close()
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import struct
 import time
@@ -15,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from host.commissioning.env import CommissioningEnv
 from host.config import Config, config_from_dict
 from host.config_fields import ConfigError
 from host.control.ops import OpContext
@@ -187,6 +189,101 @@ async def test_a_stalled_viewer_holds_one_frame_and_slows_nothing() -> None:
         assert hub.stats.dropped + hub.stats.encoded == hub.stats.submitted
     finally:
         await hub.close()
+
+
+async def test_each_viewer_gets_the_ghost_it_chose_and_one_choice_costs_one_encode() -> None:
+    camera = CameraModel(width=320, height=256, u0=160, v0=128, fx=300, fy=300, k1=0, k2=0)
+    hub = FrameHub(ViewRenderer(camera, box(400, 400, 400), np.eye(4), load_parts(None)))
+    hub.start()
+    T_w_c = np.eye(4)
+    T_w_c[:3, 3] = [0.0, 0.0, 3000.0]
+    T_w_c[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking down at the box
+    ghost = T_w_c.copy()
+    ghost[0, 3] += 150.0  # the encoder-only pose, 150 mm off
+    try:
+        with_ghost, without = hub.attach(True), hub.attach(False)
+        hub.submit(ViewInput(1, time.monotonic_ns(), None, T_w_c, ghost))
+        a, b = await asyncio.wait_for(with_ghost.take(), 5.0), await without.take()
+        assert (a.ghost, b.ghost) == (True, False)
+        pixels = [
+            np.asarray(cv2.imdecode(np.frombuffer(f.jpeg, np.uint8), cv2.IMREAD_COLOR))
+            for f in (a, b)
+        ]
+        violet = [
+            int(((p[..., 2] > 150) & (p[..., 0] > 110) & (p[..., 1] < 170)).sum()) for p in pixels
+        ]
+        assert violet[0] > 50, violet  # the ghost's edges where asked
+        assert violet[1] < 5, violet  # and only there
+        without.ghost = True  # the page's toggle: now both want it, one encode serves both
+        hub.submit(ViewInput(2, time.monotonic_ns(), None, T_w_c, ghost))
+        a, b = await asyncio.wait_for(with_ghost.take(), 5.0), await without.take()
+        assert a is b  # one encode served both
+        assert a.ghost
+        hub.submit(ViewInput(3, time.monotonic_ns(), None, T_w_c, None))  # no drift filter yet
+        assert not (await asyncio.wait_for(with_ghost.take(), 5.0)).ghost
+    finally:
+        await hub.close()
+
+
+async def test_the_page_sets_its_ghost_and_reads_run_progress_and_reports(
+    tmp_path: Path, station: tuple[Station, MemoryController]
+) -> None:
+    st, _ = station
+    st.context.commissioning = CommissioningEnv(report_root=tmp_path)
+    run = tmp_path / "20260101-000000-intrinsics"
+    run.mkdir()
+    (run / "index.html").write_text("<h1>PASS</h1><img src='figure1.png'>")
+    (run / "figure1.png").write_bytes(b"\x89PNG")
+    (tmp_path / "secret.txt").write_text("not a report")
+
+    async def finished(progress: dict[str, Any]) -> dict[str, Any]:
+        progress["coverage"] = {"x": 1.0, "y": 0.5, "size": 0.2, "skew": 0.7}
+        return {"passed": True, "reasons": ["ok"], "report": str(run / "index.html")}
+
+    job = st.context.commissioning.jobs.start("intrinsics", finished)
+    await job.task
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        hello_msg = await hello(ws, VIEWER)
+        assert "calibrate_intrinsics" in hello_msg["runs"]
+        assert hello_msg["camera"]["fx"] == pytest.approx(300.0)
+        await ws.send_json({"type": "view", "ghost": False})
+        assert (await next_json(ws, "view"))["ghost"] is False
+        status = await next_json(ws, "status")
+        comm = status["commissioning"]
+        assert comm["state"] == "done"
+        assert comm["progress"]["coverage"]["x"] == 1.0
+        url = comm["report_url"]
+        assert url.endswith("/20260101-000000-intrinsics/index.html")
+        async with http.get(st.url.rstrip("/") + url) as reply:
+            assert reply.status == 200
+            assert "PASS" in await reply.text()
+            assert "style-src 'unsafe-inline'" in reply.headers["Content-Security-Policy"]
+        async with http.get(st.url.rstrip("/") + url.replace("index.html", "figure1.png")) as r:
+            assert r.status == 200
+        wrong_key = url.replace(st.reports_key, "x" * len(st.reports_key))
+        bad = [wrong_key, url.replace("index.html", "secret.txt"), url.replace(run.name, "..")]
+        for path in bad:
+            async with http.get(st.url.rstrip("/") + path) as reply:
+                assert reply.status == 404, path
+
+
+async def test_a_new_rig_file_reaches_the_drawing_and_the_pages(
+    station: tuple[Station, MemoryController],
+) -> None:
+    st, _ = station
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        assert (await hello(ws, VIEWER))["camera"]["fx"] == pytest.approx(300.0)
+        rig = rig_file(
+            "[camera]\nwidth = 320\nheight = 256\n[camera.intrinsics]\n"
+            "u0 = 161.0\nv0 = 128.0\nfx = 612.5\nfy = 611.0\nk1 = 0.0\nk2 = 0.0\n"
+        )
+        new = config_from_dict({"camera": {"source": "none"}, "rig": {"path": str(rig)},
+                                "ui": dataclasses.asdict(st.config)})  # fmt: skip
+        st.apply_rig(new)  # as the daemon does once a calibration is written
+        info = await next_json(ws, "info")
+        assert info["camera"]["fx"] == pytest.approx(612.5)
+        assert info["camera"]["u0"] == pytest.approx(161.0)
+        assert st.hub.renderer.camera.fy == pytest.approx(611.0)
 
 
 async def test_nothing_is_drawn_without_viewers() -> None:

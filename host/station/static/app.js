@@ -7,8 +7,8 @@ const HOLD_PERIOD_MS = 100;       // dead-man heartbeat while a jog button is he
 const PING_PERIOD_MS = 2000;      // clock offset between this page and the daemon
 const RECONNECT_MIN_MS = 500;
 const RECONNECT_MAX_MS = 5000;
-const DRAG_DEG_PER_PX = 0.1;
 const TAP_SLOP_PX = 8;
+const TIMING_KEEP = 300;          // frames whose latency breakdown is kept (for the benchmark)
 
 const $ = (id) => document.getElementById(id);
 const state = {
@@ -16,6 +16,7 @@ const state = {
   frames: 0, fpsTimes: [], lastLatencyMs: null, latencies: [], offsetMs: null, pings: [],
   points: {}, frameSize: [640, 480], status: null, jog: null, reqId: 0, picked: [],
   reconnectMs: RECONNECT_MIN_MS, pendingHead: null, deadman: 0, lastReply: null,
+  ghost: null, ghostDrawn: false, viewAck: null, sigma: null, run: null, timing: [],
 };
 window.orbitar = state;  // for the browser tests and the curious
 
@@ -66,6 +67,8 @@ function onJson(msg) {
     if (!msg.ok) toast(`${msg.op}: ${msg.code} — ${msg.message || ""}`);
     return undefined;
   }
+  if (msg.type === "view") { state.viewAck = msg; return undefined; }
+  if (msg.type === "info") return onInfo(msg);
   if (msg.type === "deadman") { state.deadman += 1; toast(`stopped by the dead-man rule: ${msg.why}`); }
   if (msg.type === "error") toast(`${msg.code}`);
   return undefined;
@@ -79,8 +82,16 @@ function onHello(msg) {
   document.body.classList.toggle("viewer", msg.role !== "operator");
   $("role").textContent = msg.role === "operator" ? "operator" : "viewer (no motion)";
   setConn(true, "connected");
-  setupHead(msg.head_deg); drawPlan(msg.track); showParts(msg.parts);
+  setupHead(msg.head_deg); drawPlan(msg.track); showParts(msg.parts); setupRuns(msg.runs || []);
+  if (state.ghost === null) state.ghost = Boolean(msg.ghost);
+  $("ghost").checked = state.ghost; sendView();
   ping();
+}
+
+// The rig file changed (a calibration was written): new intrinsics, limits and track plan.
+function onInfo(msg) {
+  state.info = { ...state.info, ...msg, role: state.info.role };
+  setupHead(msg.head_deg); drawPlan(msg.track);
 }
 
 function setConn(ok, text) {
@@ -98,7 +109,12 @@ function onPong(msg) {
 
 // ---- frames ------------------------------------------------------------------------------
 
+// A frame is acknowledged once drawn: the daemon sends the next only then, so at most one frame
+// is in flight (benchmarks/bench_station.py measured acknowledging on arrival instead: on a
+// loaded 2-core machine the extra frames received and decoded cost more than the overlap saved).
+// createImageBitmap decodes off the main thread.
 async function onFrame(buffer) {
+  const receivedMs = performance.now();
   const view = new DataView(buffer);
   const headLen = view.getUint32(0);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
@@ -106,27 +122,48 @@ async function onFrame(buffer) {
   let latency = null;
   try {
     const bitmap = await createImageBitmap(blob);
+    const decodedMs = performance.now();
     const canvas = $("view");
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
     }
-    canvas.getContext("2d").drawImage(bitmap, 0, 0);
+    canvas.getContext("2d", { alpha: false }).drawImage(bitmap, 0, 0);
     bitmap.close();
-    if (state.offsetMs !== null) latency = performance.now() + state.offsetMs - header.exposure_ms;
+    latency = drawn(header, receivedMs, decodedMs);
+  } catch (err) {
+    toast(`frame ${header.index} not shown: ${err}`);
   } finally {
     send({ type: "ack", index: header.index, latency_ms: latency });
   }
+}
+
+function drawn(header, receivedMs, decodedMs) {
+  const now = performance.now();
+  const latency = state.offsetMs === null ? null : now + state.offsetMs - header.exposure_ms;
+  if (latency !== null) {  // where the time went: daemon, network, decode, draw
+    const t = {
+      daemon: header.age_at_send_ms, transit: receivedMs + state.offsetMs - header.sent_ms,
+      decode: decodedMs - receivedMs, draw: now - decodedMs, total: latency,
+    };
+    state.timing.push(t); if (state.timing.length > TIMING_KEEP) state.timing.shift();
+  }
   state.frames += 1; state.points = header.points || {}; state.frameSize = [header.width, header.height];
+  state.ghostDrawn = Boolean(header.ghost);
   state.lastLatencyMs = latency;
   if (latency !== null) { state.latencies.push(latency); if (state.latencies.length > 300) state.latencies.shift(); }
-  const now = performance.now(); state.fpsTimes.push(now);
+  state.fpsTimes.push(now);
   while (state.fpsTimes.length && state.fpsTimes[0] < now - 2000) state.fpsTimes.shift();
   const homed = !state.status || (state.status.link || {}).homed !== false;
   let note = header.registered ? "" : "no pose for this frame: overlay withheld";
   if (header.registered && !homed) note = "not homed: the overlay assumes the trolley at home until Home is run";
-  $("viewnote").textContent = note;
+  $("ghost-note").textContent = state.ghost && header.registered && !header.ghost ? "(none yet: no drift correction running)" : "";
+  setText($("viewnote"), note);
   $("viewnote").hidden = !note;
+  return latency;
 }
+
+// Writing only what changed keeps the page from re-laying out for nothing on every frame.
+function setText(el, text) { if (el.textContent !== text) el.textContent = text; }
 
 function pageFps() {
   const t = state.fpsTimes;
@@ -204,19 +241,31 @@ canvas.addEventListener("pointerdown", (ev) => {
   canvas.setPointerCapture(ev.pointerId);
   drag = { x: ev.clientX, y: ev.clientY, pan: Number($("pan").value), tilt: Number($("tilt").value), moved: false };
 });
+// The head turns by the angle the dragged pixels subtend through the calibrated intrinsics,
+// so the scene follows the finger whatever the lens and the view's size on screen.
+function dragDeg(d, ev) {
+  const rect = canvas.getBoundingClientRect(); const cam = state.info.camera;
+  const sx = cam.width / rect.width; const sy = cam.height / rect.height;  // camera pixels
+  const u = (x) => (x - rect.left) * sx; const v = (y) => (y - rect.top) * sy;
+  const angle = (a, b, c, f) => ((Math.atan((b - c) / f) - Math.atan((a - c) / f)) * 180) / Math.PI;
+  return [angle(u(d.x), u(ev.clientX), cam.u0, cam.fx), angle(v(d.y), v(ev.clientY), cam.v0, cam.fy)];
+}
+
 canvas.addEventListener("pointermove", (ev) => {
   if (!drag) return;
   const dx = ev.clientX - drag.x; const dy = ev.clientY - drag.y;
   if (Math.hypot(dx, dy) > TAP_SLOP_PX) drag.moved = true;
   if (drag.moved && state.role === "operator") {
-    $("pan").value = drag.pan - dx * DRAG_DEG_PER_PX; $("tilt").value = drag.tilt + dy * DRAG_DEG_PER_PX;
-    showHead($("pan").value, $("tilt").value);
+    const [pan, tilt] = dragDeg(drag, ev);
+    $("pan").value = drag.pan - pan; $("tilt").value = drag.tilt + tilt;
+    drag.target = [drag.pan - pan, drag.tilt + tilt];
+    showHead(drag.target[0], drag.target[1]);
   }
 });
 canvas.addEventListener("pointerup", (ev) => {
   if (!drag) return;
   const d = drag; drag = null;
-  if (d.moved && state.role === "operator") sendHead(Number($("pan").value), Number($("tilt").value));
+  if (d.moved && state.role === "operator" && d.target) sendHead(d.target[0], d.target[1]);
   else if (!d.moved) tapView(ev);
 });
 canvas.addEventListener("pointercancel", () => { drag = null; });
@@ -232,6 +281,12 @@ function tapView(ev) {
   }
   if (best) pickPoint(best.name);
 }
+
+// ---- the ghost: this page's choice, drawn by the daemon into this page's frames ----------
+
+function sendView() { if (state.ghost !== null) send({ type: "view", ghost: state.ghost }); }
+
+$("ghost").addEventListener("change", () => { state.ghost = $("ghost").checked; sendView(); });
 
 // ---- the track plan ------------------------------------------------------------------------
 
@@ -328,6 +383,10 @@ function onStatus(msg) {
   state.status = msg;
   const st = msg.status || {}; const ctrl = st.controller || {}; const link = msg.link || {};
   const svc = st.service || {}; const frames = msg.frames || {}; const stn = msg.station || {};
+  // The budget is evaluated at the controller's last known pose: its age is that pose's age.
+  const sigmaPx = typeof svc.overlay_sigma_px === "number" ? svc.overlay_sigma_px : null;
+  const poseAt = typeof ctrl.age_s === "number" ? msg.host_ms - ctrl.age_s * 1000 : null;
+  state.sigma = { px: sigmaPx, at_host_ms: poseAt };
   const pose = st.pose; const head = ctrl.head_rad || [null, null];
   const ageMs = pose ? msg.host_ms - pose.t_ns / 1e6 : null;
   const src = frames.source || {};
@@ -348,27 +407,55 @@ function onStatus(msg) {
     ["tooth skips found", link.skips_detected ?? "—"],
     ["position σ", fmt(link.position_sigma_mm, 2, " mm")],
     ["pose age", fmt(ageMs, 0, " ms")],
+    ["overlay σ (predicted)", sigmaText(), state.sigma && state.sigma.px !== null ? "" : "bad"],
     ["camera", `${src.kind || "none"} ${src.state || ""} ${src.detail || ""}`, src.state && src.state !== "running" ? "bad" : ""],
     ["frame loop", `${fmt(svc.fps, 1, " fps")}, dropped ${frames.dropped ?? 0}`],
     ["view", `${fmt(pageFps(), 1, " fps")}, ${fmt(state.lastLatencyMs, 0, " ms")} latency`],
     ["encoder", `${fmt(stn.encode_fps, 1, " fps")}, ${fmt(stn.encode_cpu_ms, 1, " ms")}/frame, dropped ${stn.encode_dropped ?? 0}`],
     ["viewers", `${stn.viewers ?? 0}`],
   ];
-  const table = $("status"); table.replaceChildren();
-  for (const [k, v, cls] of rows) {
-    const tr = document.createElement("tr"); const th = document.createElement("th"); const td = document.createElement("td");
-    th.textContent = k; td.textContent = v; if (cls) td.className = cls; tr.append(th, td); table.append(tr);
+  const table = $("status");
+  if (table.rows.length !== rows.length) {
+    table.replaceChildren();
+    for (let i = 0; i < rows.length; i++) table.append(document.createElement("tr"));
+    for (const tr of table.rows) tr.append(document.createElement("th"), document.createElement("td"));
   }
-  $("figures").textContent = `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")}`;
+  rows.forEach(([k, v, cls], i) => {  // in place: a status push re-lays out only what changed
+    const [th, td] = table.rows[i].cells;
+    setText(th, k); setText(td, v); if (td.className !== (cls || "")) td.className = cls || "";
+  });
+  showFigures();
   const latched = ctrl.state === "ESTOP" || ctrl.state === "FAULT";
   const faults = (ctrl.fault_names || []).join(", ");
   $("motion-state").textContent = latched ? `${ctrl.state} LATCHED (${faults}): Clear releases` : ctrl.state || "";
   $("motion-state").classList.toggle("latched", latched);
   showHall(msg.hall);
+  showRun(msg.commissioning);
   showTrolley(link.track_s_mm ?? (ctrl.position_mm ?? null));
   if (!drag && head[0] !== null && document.activeElement !== $("pan") && document.activeElement !== $("tilt")) {
     $("pan").value = deg(head[0]); $("tilt").value = deg(head[1]); showHead(deg(head[0]), deg(head[1]));
   }
+}
+
+// The predicted overlay σ and its age on the daemon's clock (it keeps counting if status stops).
+function sigmaAgeS() {
+  const sg = state.sigma;
+  if (!sg || sg.at_host_ms === null || state.offsetMs === null) return null;
+  return (performance.now() + state.offsetMs - sg.at_host_ms) / 1000;
+}
+
+function sigmaText() {
+  const sg = state.sigma;
+  if (!sg || sg.px === null) return "unknown (no error budget for this pose)";
+  const age = sigmaAgeS();
+  return `${sg.px.toFixed(1)} px, ${age === null ? "age unknown" : `${age.toFixed(1)} s old`}`;
+}
+
+function showFigures() {
+  const ctrl = ((state.status || {}).status || {}).controller || {};
+  const sg = state.sigma; const age = sigmaAgeS();
+  const sigma = !sg || sg.px === null ? "σ unknown" : `σ ${sg.px.toFixed(1)} px (${age === null ? "?" : age.toFixed(1)} s)`;
+  setText($("figures"), `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")} · ${sigma}`);
 }
 
 function faultText(ctrl) {
@@ -426,6 +513,188 @@ function pickPoint(name) {
   }
 }
 
+// ---- commissioning: runs started here through the same ops as `orbitar calibrate` ----------
+
+// Fields of the runs this page knows (docs/COMMISSIONING.md); an empty field is left out, so the
+// daemon's default applies. A run the daemon offers that is not listed gets a JSON arguments box.
+const BOARD_FIELDS = [
+  ["board.squares_x", "int", "board squares across"], ["board.squares_y", "int", "board squares down"],
+  ["board.square_mm", "number", "square edge, mm"], ["board.marker_mm", "number", "marker edge, mm"],
+];
+const POSE_FIELDS = [
+  ["board_pose", "json", "board pose (surveyed), 4×4 JSON, mm"],
+  ["board_sigma_mm", "number", "its survey σ, mm"], ["board_sigma_rad", "number", "its survey σ, rad"],
+];
+const SPEED = ["speed_mm_s", "number", "trolley speed, mm/s"];
+const WRITE = ["write", "bool", "write the rig file if it passes", true];
+const STATIONS = ["stations_mm", "list", "stations s, mm (empty: here)"];
+const RUN_FORMS = {
+  calibrate_intrinsics: { title: "Camera intrinsics (board)", fields: [
+    ["board_centre_mm", "vec3", "board centre X Y Z, mm (tape)"], STATIONS, ...BOARD_FIELDS,
+    ["min_views", "int", "views needed"], ["max_rms_px", "number", "pass if RMS ≤, px"],
+    ["full_distortion", "bool", "also p1, p2, k3", false], SPEED, WRITE] },
+  calibrate_head: { title: "Head (M_cr) and track placement", fields: [...POSE_FIELDS, STATIONS, ...BOARD_FIELDS, SPEED, WRITE] },
+  calibrate_check: { title: "Acceptance check", fields: [...POSE_FIELDS, STATIONS, ...BOARD_FIELDS,
+    ["max_rms_px", "number", "pass if RMS ≤, px"], SPEED] },
+  calibrate_latency: { title: "Frame latency", fields: [...POSE_FIELDS.slice(0, 1),
+    ["station_mm", "number", "station facing the board, mm"], ["span_mm", "number", "pass length, mm"],
+    ["passes", "int", "passes"], ...BOARD_FIELDS, SPEED, WRITE] },
+  survey_workpiece: { title: "Workpiece survey (rangefinder)", fields: [
+    ["aims", "json", "aims [[s_mm, pan_rad, tilt_rad], …]"], ["model_points_mm", "json", "model points [[x, y, z], …]"],
+    ["samples", "int", "readings per point"], WRITE] },
+  survey_home: { title: "Home survey (rangefinder)", fields: [
+    ["pan_rad", "deg", "pan at an end wall, °"], ["tilt_rad", "deg", "tilt, °"], ["samples", "int", "readings"], WRITE] },
+};
+const COVERAGE_KEYS = ["x", "y", "size", "skew"];
+
+function setupRuns(runs) {
+  const select = $("run-op"); const keep = select.value; select.replaceChildren();
+  $("comm-panel").hidden = !runs.length;
+  for (const name of runs) {
+    const o = document.createElement("option"); o.value = name;
+    o.textContent = (RUN_FORMS[name] || {}).title || name; select.append(o);
+  }
+  if (runs.includes(keep)) select.value = keep;
+  buildRunForm();
+  $("run-who").textContent = state.role === "operator" ? "" : "(viewer: follow only)";
+}
+
+function buildRunForm() {
+  const name = $("run-op").value; const form = $("run-form");
+  if (form.dataset.op === name) return;
+  form.replaceChildren(); form.dataset.op = name;
+  const fields = (RUN_FORMS[name] || { fields: [["", "args", "arguments, JSON object"]] }).fields;
+  for (const [key, kind, label, dflt] of fields) {
+    const row = document.createElement("label"); const span = document.createElement("span");
+    span.textContent = label;
+    const input = document.createElement(kind === "json" || kind === "args" ? "textarea" : "input");
+    input.dataset.key = key; input.dataset.kind = kind;
+    if (kind === "bool") { input.type = "checkbox"; input.checked = Boolean(dflt); } else { input.type = "text"; }
+    if (kind === "vec3") input.placeholder = "x y z";
+    row.append(span, input); form.append(row);
+  }
+}
+
+// The form as the op's arguments; a malformed field throws with its label.
+function runArgs() {
+  const args = {};
+  for (const input of $("run-form").querySelectorAll("[data-key]")) {
+    const { key, kind } = input.dataset; const text = input.value.trim();
+    const label = input.previousSibling.textContent;
+    let value;
+    if (kind === "bool") value = input.checked;
+    else if (!text) continue;
+    else if (kind === "args") { Object.assign(args, JSON.parse(text)); continue; }
+    else if (kind === "json") value = JSON.parse(text);
+    else if (kind === "vec3" || kind === "list") value = text.split(/[\s,;]+/).filter(Boolean).map(Number);
+    else if (kind === "deg") value = (Number(text) * Math.PI) / 180;
+    else value = Number(text);
+    if ((kind === "number" || kind === "int" || kind === "deg") && !Number.isFinite(value)) throw new Error(`${label}: not a number`);
+    if (kind === "int" && !Number.isInteger(value)) throw new Error(`${label}: not a whole number`);
+    if ((kind === "vec3" || kind === "list") && value.some((x) => !Number.isFinite(x))) throw new Error(`${label}: numbers only`);
+    const [outer, inner] = key.split(".");
+    if (inner) { args[outer] = args[outer] || {}; args[outer][inner] = value; } else args[outer] = value;
+  }
+  return args;
+}
+
+$("run-op").addEventListener("change", buildRunForm);
+$("run-start").addEventListener("click", () => {
+  let args;
+  try { args = runArgs(); } catch (err) { toast(`run not started: ${err.message}`); return; }
+  op($("run-op").value, args);
+});
+$("run-cancel").addEventListener("click", () => op("commissioning_cancel"));
+
+function bar(label, value, cls, need, text) {
+  const row = document.createElement("div"); row.className = "bar";
+  const name = document.createElement("span"); name.textContent = label;
+  const track = document.createElement("div"); track.className = "track";
+  const fill = document.createElement("div"); fill.className = `fill ${cls}`;
+  fill.style.width = `${Math.max(0, Math.min(1, value)) * 100}%`; track.append(fill);
+  if (need !== null) {
+    const mark = document.createElement("div"); mark.className = "need"; mark.style.left = `${need * 100}%`; track.append(mark);
+  }
+  const out = document.createElement("span"); out.textContent = text;
+  row.append(name, track, out);
+  return row;
+}
+
+// Per-view errors from a finished run: RMS per kept view (intrinsics, head, check), the views
+// dropped as outliers (their RMS is not reported), or the survey's residual per point.
+function perViewRows(result) {
+  const rows = [];
+  if (Array.isArray(result.per_view_rms_px)) {
+    const dropped = new Set(result.rejected_views || []);
+    const kept = (result.views || {}).ok ?? result.per_view_rms_px.length + dropped.size;
+    const errors = [...result.per_view_rms_px];
+    for (let j = 0; j < Math.max(kept, errors.length); j++) {
+      if (dropped.has(j)) rows.push({ label: `view ${j + 1}`, value: null, outlier: true, unit: "px" });
+      else rows.push({ label: `view ${j + 1}`, value: errors.length ? errors.shift() : null, outlier: false, unit: "px" });
+    }
+  } else if (Array.isArray(result.residuals_mm)) {
+    result.residuals_mm.forEach((r, i) => {
+      const v = Array.isArray(r) ? Math.hypot(...r) : r;
+      rows.push({ label: `P${i + 1}`, value: v, outlier: false, unit: "mm" });
+    });
+  }
+  return rows;
+}
+
+function showRun(run) {
+  state.run = run || null;
+  const running = Boolean(run && run.state === "running");
+  $("run-start").disabled = running; $("run-cancel").disabled = !running;
+  if (!run || run.state === "none") { $("run-state").textContent = "No run yet."; return; }
+  if (run.state === "unavailable") {
+    $("run-state").textContent = `Commissioning unavailable: ${run.reason || ""}`;
+    $("run-start").disabled = true; return;
+  }
+  const p = run.progress || {}; const title = (RUN_FORMS[`calibrate_${run.kind}`] || RUN_FORMS[`survey_${run.kind}`] || {}).title || run.kind;
+  const where = p.of ? `, view ${p.view} of ${p.of}${p.label ? ` (${p.label})` : ""}` : "";
+  const counts = p.accepted === undefined ? "" : ` — ${p.accepted} kept, ${p.blurred ?? 0} blurred, ${p.not_found ?? 0} without the board`;
+  const what = run.state === "running" ? `${p.phase || "running"}${where}${counts}` : run.state;
+  $("run-state").textContent = `Run ${run.id} · ${title}: ${what} · ${fmt(run.elapsed_s, 0, " s")}`;
+  const result = run.result || {};
+  const cov = p.coverage || result.coverage;
+  const bars = $("run-coverage"); bars.replaceChildren();
+  if (cov) {
+    const need = (state.info && state.info.coverage_min) || {};
+    for (const k of COVERAGE_KEYS) {
+      const v = Number(cov[k] ?? 0); const n = need[k] ?? null;
+      bars.append(bar(k.toUpperCase(), v, n !== null && v >= n ? "ok" : "", n, `${Math.round(v * 100)} %`));
+    }
+  }
+  const verdict = $("run-verdict"); const reasons = $("run-reasons"); reasons.replaceChildren();
+  const finished = run.state === "done" && typeof result.passed === "boolean";
+  verdict.hidden = !finished && run.state === "running";
+  if (finished) {
+    verdict.textContent = result.passed ? "PASS" : "FAIL"; verdict.className = result.passed ? "pass" : "fail";
+  } else if (run.state !== "running") {
+    verdict.textContent = run.state === "cancelled" ? "CANCELLED: nothing written" : "ERROR: nothing written";
+    verdict.className = "fail";
+  }
+  const why = finished ? result.reasons || [] : [run.reason || run.error].filter(Boolean);
+  for (const text of why) { const li = document.createElement("li"); li.textContent = text; reasons.append(li); }
+  if (finished && result.written) { const li = document.createElement("li"); li.textContent = `written to ${result.written}`; reasons.append(li); }
+  const table = $("run-views"); table.replaceChildren();
+  const rows = finished ? perViewRows(result) : [];
+  const top = Math.max(1e-9, ...rows.map((r) => r.value ?? 0));
+  for (const r of rows) {
+    const tr = document.createElement("tr"); tr.dataset.view = r.label;
+    const name = document.createElement("td"); name.textContent = r.label;
+    const cell = document.createElement("td"); cell.style.width = "100%";
+    let text = r.outlier ? "outlier, dropped" : "not reported";
+    if (r.value !== null) text = `${r.value.toFixed(3)} ${r.unit}`;
+    cell.append(bar("", r.outlier ? 1 : (r.value ?? 0) / top, r.outlier ? "outlier" : "ok", null, text));
+    if (r.outlier) { tr.classList.add("outlier"); name.className = "outlier"; }
+    tr.append(name, cell); table.append(tr);
+  }
+  const link = $("run-report");
+  link.hidden = !run.report_url;
+  if (run.report_url) link.href = run.report_url;
+}
+
 // ---- little things -------------------------------------------------------------------------
 
 let toastTimer = null;
@@ -446,4 +715,5 @@ $("login-form").addEventListener("submit", (ev) => {
 });
 
 setInterval(ping, PING_PERIOD_MS);
+setInterval(() => { if (state.status) showFigures(); }, 500);
 connect();
