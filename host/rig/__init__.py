@@ -6,9 +6,13 @@ Public API (used by the daemon, `orbitar sim --rig`, the demo and the commission
 - `dumps_rig(spec)`, `save_rig(spec, path)` (atomic, keeps `*.bak`), `backups(path)`.
 - `update_rig(path, {"head.m_cr": Pose6(...), ...})`, `with_updates(spec, updates)`: replace
   calibrated blocks (each with σ and `Provenance.now(method, residual, unit, views)`).
+- `covariance_over(spec, names)`, `joint_covariance(blocks, cross, provenance)`: blocks solved
+  together and the `[covariance]` block that keeps their cross terms.
 - `build_kinematics`, `build_camera`, `build_scene`, `build_track`, `workpiece_pose`.
+The schema's dataclasses and constants are re-exported from `host.rig.schema.__all__`.
 """
 
+from host.rig import schema
 from host.rig.build import (
     build_camera,
     build_kinematics,
@@ -18,50 +22,23 @@ from host.rig.build import (
     workpiece_pose,
 )
 from host.rig.codec import RigError, dumps_rig, load_rig, loads_rig, rig_from_dict, rig_to_dict
-from host.rig.schema import (
-    INTRINSIC_KEYS,
-    CameraSpec,
-    HallSpec,
-    HeadSpec,
-    Intrinsics,
-    Marks,
-    Pose6,
-    Provenance,
-    RangefinderSpec,
-    RigSpec,
-    Scalar,
-    Segment,
-    SurfaceSpec,
-    TrackSpec,
-    WorkpieceSpec,
-)
+from host.rig.covariance import block_covariance, covariance_over, joint_covariance
+from host.rig.schema import *  # noqa: F403  (the schema's table of public names)
 from host.rig.store import UPDATABLE, backups, current_rig, save_rig, update_rig, with_updates
 
 __all__ = [
-    "INTRINSIC_KEYS",
     "UPDATABLE",
-    "CameraSpec",
-    "HallSpec",
-    "HeadSpec",
-    "Intrinsics",
-    "Marks",
-    "Pose6",
-    "Provenance",
-    "RangefinderSpec",
     "RigError",
-    "RigSpec",
-    "Scalar",
-    "Segment",
-    "SurfaceSpec",
-    "TrackSpec",
-    "WorkpieceSpec",
     "backups",
+    "block_covariance",
     "build_camera",
     "build_kinematics",
     "build_scene",
     "build_track",
+    "covariance_over",
     "current_rig",
     "dumps_rig",
+    "joint_covariance",
     "load_rig",
     "loads_rig",
     "rig_from_dict",
@@ -72,3 +49,4 @@ __all__ = [
     "with_updates",
     "workpiece_pose",
 ]
+__all__ += schema.__all__
