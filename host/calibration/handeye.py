@@ -69,6 +69,15 @@ class HandEyeResult:
     track_covariance: FloatArray  # 6×6 of T_w_track, the board survey's included
     per_view_rms_px: FloatArray
     residuals_px: list[FloatArray]
+    # Cov(δ(M_cr, T_b_track), δθ), 12×10, and the camera covariance Σθ it came from: the fit
+    # moves with the camera's error (None when no camera covariance was given)
+    camera_cross: FloatArray | None = None
+    camera_cov: FloatArray | None = None
+
+    @property
+    def track_camera_cross(self) -> FloatArray | None:
+        """Cov(δ T_w_track, δθ): the board survey is independent of the camera."""
+        return None if self.camera_cross is None else self.camera_cross[6:]
 
     @property
     def cov_M_cr(self) -> FloatArray:
@@ -110,8 +119,11 @@ def calibrate_handeye(
     r = problem.residuals(M_cr, T_b_k)
     J = problem.jacobian(M_cr, T_b_k, r)
     cov = lsq.covariance(J, r)  # linearised at the solution, in its own local frame
+    cam_cov = cross = None
     if camera_cov is not None:
-        cov = cov + _camera_term(problem, M_cr, T_b_k, J, np.asarray(camera_cov, dtype=np.float64))
+        cam_cov = np.asarray(camera_cov, dtype=np.float64)
+        A = _camera_term(problem, M_cr, T_b_k, J, cam_cov)
+        cov, cross = cov + A @ cam_cov @ A.T, A @ cam_cov
     rot_res, trans_res = _pose_residuals(M_cr, T_b_k, T_k_r, T_c_b)
     T_wb = np.eye(4) if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
     cov_wb = np.zeros((6, 6)) if cov_T_w_b is None else np.asarray(cov_T_w_b, dtype=np.float64)
@@ -121,7 +133,7 @@ def calibrate_handeye(
     rms_v = np.array([float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) for e in per_view])
     return HandEyeResult(
         M_cr, T_b_k, T_wb @ T_b_k, problem.rms(M_cr, T_b_k), initial, rot_res, trans_res,
-        cov, cov_wk, rms_v, per_view,
+        cov, cov_wk, rms_v, per_view, cross, cam_cov,
     )  # fmt: skip
 
 
@@ -132,7 +144,7 @@ CAMERA_STEPS = (1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7)
 def _camera_term(
     problem: _Problem, M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray, cam_cov: FloatArray
 ) -> FloatArray:
-    """Covariance the camera's uncertainty adds: x moves by −(JᵀJ)⁻¹Jᵀ J_θ δθ."""
+    """How the fit moves with the camera's error: δx = A δθ, A = −(JᵀJ)⁻¹Jᵀ J_θ."""
     base = problem.camera
     r0 = problem.residuals(M_cr, T_b_k)
     J_theta = np.zeros((r0.size, len(CAMERA_KEYS)))
@@ -142,8 +154,7 @@ def _camera_term(
         problem.camera = dataclasses.replace(base, **{key: getattr(base, key) + step})
         J_theta[:, j] = (problem.residuals(M_cr, T_b_k) - r0) / step
     problem.camera = base
-    A = -np.linalg.pinv(J.T @ J) @ J.T @ J_theta
-    out: FloatArray = A @ cam_cov @ A.T
+    out: FloatArray = -np.linalg.pinv(J.T @ J) @ J.T @ J_theta
     return out
 
 

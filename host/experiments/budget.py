@@ -6,11 +6,20 @@ The overlay of a workpiece point X_p is u = π_θ(T_c_w(s, pan, tilt) · T_w_p �
 
 Every calibrated quantity enters: the intrinsics θ (10, Table 1's and p1, p2, k3), M_cr and the
 track placement and the workpiece frame (local perturbations δ = (ω, t), as the rig file keeps
-their covariances), the arc length s (the chain filter's σ, plus clock-sync error × speed: a
-stamp off by δt puts the trolley v·δt away), and the head angles (their noise). First order:
-Σ_u = J Σ Jᵀ with J by central differences over all 31 inputs, so each source's share is its
-own block's J Σ Jᵀ. `monte_carlo` samples the same inputs through the same projection; the test
-holds the two together.
+their covariances), the arc length s (the chain filter's σ, plus the stamp's error × speed: a
+stamp off by δt, from clock sync or the exposure latency's σ, puts the trolley v·δt away), and
+the head angles (their noise). Blocks solved together are correlated (the rig file's
+`[covariance]`: a focal length a little long and a camera a little farther away draw the same
+overlay), and the cross terms enter Σ. First order: Σ_u = J Σ Jᵀ with J by central differences
+over all 31 inputs; each source's share is its own block's J Σ Jᵀ (the shares do not add up to
+the total when sources are correlated: the cross terms are in the total only). `monte_carlo`
+samples the same inputs through the same projection; the test holds the two together.
+
+What it predicts: the spread of the overlay's error over rigs calibrated like this one, i.e.
+drawn minus true pixel of a workpiece point, whose frame is known as the rig file says. A
+workpiece surveyed through the rig itself shares the rig's errors, which then cancel in part:
+the budget sees that only when the survey writes its cross terms into `[covariance]`
+(`host.rig.joint_covariance`); without them it predicts an independently surveyed workpiece.
 """
 
 from __future__ import annotations
@@ -24,10 +33,25 @@ import numpy as np
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig, head_rotation
 from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R
-from host.rig import RigSpec, build_camera, build_kinematics, workpiece_pose
+from host.rig import (
+    COVARIANCE_BLOCKS,
+    INTRINSIC_KEYS,
+    RigSpec,
+    build_camera,
+    build_kinematics,
+    covariance_over,
+    workpiece_pose,
+)
 
-CAMERA_KEYS = ("fx", "fy", "skew", "u0", "v0", "k1", "k2", "p1", "p2", "k3")
+CAMERA_KEYS = INTRINSIC_KEYS
 SOURCES = ("intrinsics", "m_cr", "track", "workpiece", "arc_length", "head")
+# The rig file's block of each calibrated source (their cross terms come from `[covariance]`).
+RIG_BLOCKS = {
+    "intrinsics": "camera.intrinsics",
+    "m_cr": "head.m_cr",
+    "track": "track.placement",
+    "workpiece": "workpiece.frame",
+}
 SLICES = {
     "intrinsics": slice(0, 10),
     "m_cr": slice(10, 16),
@@ -62,19 +86,28 @@ class BudgetInputs:
     sigma_s_mm: float = 0.0  # the chain filter's σ of the arc length
     sigma_head_rad: tuple[float, float] = (0.0, 0.0)  # pan, tilt noise
     sigma_clock_s: float = 0.0  # clock-sync error of a frame's stamp
-    speed_mm_s: float = 0.0  # the trolley's speed (the clock error's lever)
+    speed_mm_s: float = 0.0  # the trolley's speed (the stamp error's lever)
     # 2-D RMS noise of a *detected* image point (the intrinsics fit's residual): not part of
     # the overlay's σ (the overlay is drawn, not detected), added when predicting a measurement
     pixel_noise_px: float = 0.0
+    sigma_latency_s: float = 0.0  # the exposure latency's σ (another error of the stamp)
+    # 31×31 cross terms between sources (their own diagonal blocks are ignored: those are the
+    # fields above, which a caller may replace alone), None: independent sources
+    cross: FloatArray | None = None
 
     def covariance(self) -> FloatArray:
-        """The 31×31 input covariance (block-diagonal between sources)."""
+        """The 31×31 input covariance: each source's block and the cross terms between them."""
         S = np.zeros((N_INPUTS, N_INPUTS))
+        if self.cross is not None:
+            S[:] = self.cross
+            for sl in SLICES.values():
+                S[sl, sl] = 0.0
         S[SLICES["intrinsics"], SLICES["intrinsics"]] = self.camera_cov
         S[SLICES["m_cr"], SLICES["m_cr"]] = self.m_cr_cov
         S[SLICES["track"], SLICES["track"]] = self.track_cov
         S[SLICES["workpiece"], SLICES["workpiece"]] = self.workpiece_cov
-        S[28, 28] = self.sigma_s_mm**2 + (self.sigma_clock_s * self.speed_mm_s) ** 2
+        stamp_var = self.sigma_clock_s**2 + self.sigma_latency_s**2
+        S[28, 28] = self.sigma_s_mm**2 + stamp_var * self.speed_mm_s**2
         S[29, 29], S[30, 30] = self.sigma_head_rad[0] ** 2, self.sigma_head_rad[1] ** 2
         return S
 
@@ -192,22 +225,28 @@ def points_sigma(
     return [overlay_sigma(inputs, s, p, t, points_p).sigma_px for s, p, t in poses]
 
 
-def inputs_from_rig(spec: RigSpec, sigma_s_mm: float | None = None) -> BudgetInputs:
-    """The budget of a rig file: each block's covariance; the arc length's σ from its marks.
-
-    The rig file holds no head-angle noise and no clock-sync error (they are the controller's
-    and the link's, not calibrated values): they stay 0 here unless a caller sets them.
-    """
+def inputs_from_rig(
+    spec: RigSpec, sigma_s_mm: float | None = None, speed_mm_s: float = 0.0
+) -> BudgetInputs:
+    """The budget of a rig file at a trolley speed: each block's covariance and the cross terms
+    of `[covariance]`; the arc length's σ from its marks (or the chain filter's, if given); the
+    head's angle noise; the stamp's clock-sync and latency σ."""
+    names = tuple(RIG_BLOCKS.values())
+    joint = covariance_over(spec, names)
+    at = np.cumsum([0, *(COVARIANCE_BLOCKS[n] for n in names)])
+    blocks = [joint[at[i] : at[i + 1], at[i] : at[i + 1]] for i in range(len(names))]
+    cross = np.zeros((N_INPUTS, N_INPUTS))
+    cross[: at[-1], : at[-1]] = joint  # RIG_BLOCKS are the first sources, in SLICES order
     intr = spec.camera.intrinsics
-    cam_cov = (
-        np.array(intr.covariance) if intr.covariance is not None else np.diag(np.square(intr.sigma))
-    )
     s_sig = spec.track.marks.sigma_mm if sigma_s_mm is None else sigma_s_mm
     noise = intr.provenance.residual if intr.provenance.residual_unit == "px" else None
+    head = spec.head.angle_noise.sigma
     return BudgetInputs(
-        build_kinematics(spec), build_camera(spec), workpiece_pose(spec), cam_cov,
-        spec.head.m_cr.cov(), spec.track.placement.cov(), spec.workpiece.frame.cov(), s_sig,
-        pixel_noise_px=float(noise or 0.0),
+        build_kinematics(spec), build_camera(spec), workpiece_pose(spec),
+        blocks[0], blocks[1], blocks[2], blocks[3], s_sig,
+        (head, head), spec.camera.clock_sync.sigma / 1e3, speed_mm_s,
+        pixel_noise_px=float(noise or 0.0), sigma_latency_s=spec.camera.latency.sigma / 1e3,
+        cross=cross if spec.covariance is not None else None,
     )  # fmt: skip
 
 
