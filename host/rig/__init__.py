@@ -6,8 +6,9 @@ Public API (used by the daemon, `orbitar sim --rig`, the demo and the commission
 - `dumps_rig(spec)`, `save_rig(spec, path)` (atomic, keeps `*.bak`), `backups(path)`.
 - `update_rig(path, {"head.m_cr": Pose6(...), ...})`, `with_updates(spec, updates)`: replace
   calibrated blocks (each with σ and `Provenance.now(method, residual, unit, views)`).
-- `covariance_over(spec, names)`, `joint_covariance(blocks, cross, provenance)`: blocks solved
-  together and the `[covariance]` block that keeps their cross terms.
+- `covariance_over(spec, names)`, `joint_covariance(blocks, cross, provenance)`,
+  `with_block(spec, name, cov, cross, provenance)`: blocks solved or measured together and the
+  `[covariance]` block that keeps their cross terms.
 - `build_kinematics`, `build_camera`, `build_scene`, `build_track`, `workpiece_pose`.
 The schema's dataclasses and constants are re-exported from `host.rig.schema.__all__`.
 """
@@ -22,7 +23,7 @@ from host.rig.build import (
     workpiece_pose,
 )
 from host.rig.codec import RigError, dumps_rig, load_rig, loads_rig, rig_from_dict, rig_to_dict
-from host.rig.covariance import block_covariance, covariance_over, joint_covariance
+from host.rig.covariance import block_covariance, covariance_over, joint_covariance, with_block
 from host.rig.schema import *  # noqa: F403  (the schema's table of public names)
 from host.rig.store import UPDATABLE, backups, current_rig, save_rig, update_rig, with_updates
 
@@ -46,6 +47,7 @@ __all__ = [
     "save_rig",
     "travel_limits_mm",
     "update_rig",
+    "with_block",
     "with_updates",
     "workpiece_pose",
 ]

@@ -103,3 +103,32 @@ def joint_problems(spec: RigSpec) -> list[str]:
                 "(recalibrated without its joint block?)"
             )
     return out
+
+
+def with_block(
+    spec: RigSpec,
+    name: str,
+    cov: FloatArray,
+    cross: Mapping[str, FloatArray],
+    provenance: Provenance,
+) -> JointCovariance:
+    """`spec.covariance` with block `name` added (or replaced): its own covariance and its
+    cross terms Cov(δname, δother) with blocks measured through (e.g. a workpiece surveyed
+    through the rig, whose frame shares the track placement's error)."""
+    old = spec.covariance
+    names = [n for n in (old.names if old is not None else ()) if n != name]
+    for other in cross:
+        if other not in names:
+            names.append(other)
+    base = covariance_over(spec, names)
+    at = np.cumsum([0, *(COVARIANCE_BLOCKS[n] for n in names)])
+    blocks = {n: base[at[i] : at[i + 1], at[i] : at[i + 1]] for i, n in enumerate(names)}
+    pairs = {
+        (a, b): base[at[i] : at[i + 1], at[j] : at[j + 1]]
+        for i, a in enumerate(names)
+        for j, b in enumerate(names)
+        if i < j
+    }
+    blocks[name] = cov
+    pairs.update({(name, other): np.asarray(c) for other, c in cross.items()})
+    return joint_covariance(blocks, pairs, provenance)
