@@ -11,7 +11,7 @@ stamp off by δt, from clock sync or the exposure latency's σ, puts the trolley
 the head angles (their noise). Blocks solved together are correlated (the rig file's
 `[covariance]`: a focal length a little long and a camera a little farther away draw the same
 overlay), and the cross terms enter Σ. First order: Σ_u = J Σ Jᵀ with J by central differences
-over all 31 inputs; each source's share is its own block's J Σ Jᵀ (the shares do not add up to
+over all 32 inputs; each source's share is its own block's J Σ Jᵀ (the shares do not add up to
 the total when sources are correlated: the cross terms are in the total only). `monte_carlo`
 samples the same inputs through the same projection; the test holds the two together.
 
@@ -25,6 +25,7 @@ the budget sees that only when the survey writes its cross terms into `[covarian
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -32,6 +33,8 @@ import numpy as np
 
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig, head_rotation
+from host.geometry.track import Segment as TrackSegment
+from host.geometry.track import Track
 from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R
 from host.rig import (
     COVARIANCE_BLOCKS,
@@ -44,7 +47,7 @@ from host.rig import (
 )
 
 CAMERA_KEYS = INTRINSIC_KEYS
-SOURCES = ("intrinsics", "m_cr", "track", "workpiece", "arc_length", "head")
+SOURCES = ("intrinsics", "m_cr", "track", "workpiece", "arc_length", "head", "arc_radius")
 # The rig file's block of each calibrated source (their cross terms come from `[covariance]`).
 RIG_BLOCKS = {
     "intrinsics": "camera.intrinsics",
@@ -59,12 +62,13 @@ SLICES = {
     "workpiece": slice(22, 28),
     "arc_length": slice(28, 29),
     "head": slice(29, 31),
+    "arc_radius": slice(31, 32),
 }
-N_INPUTS = 31
+N_INPUTS = 32
 STEPS = np.concatenate([
     [1e-3] * 5, [1e-6] * 5,  # intrinsics: px, then distortion
     [1e-7] * 3 + [1e-4] * 3, [1e-7] * 3 + [1e-4] * 3, [1e-7] * 3 + [1e-4] * 3,  # poses
-    [1e-4], [1e-7, 1e-7],  # s mm, head rad
+    [1e-4], [1e-7, 1e-7], [1e-3],  # s mm, head rad, arc radius mm
 ])  # fmt: skip
 
 
@@ -91,12 +95,13 @@ class BudgetInputs:
     # the overlay's σ (the overlay is drawn, not detected), added when predicting a measurement
     pixel_noise_px: float = 0.0
     sigma_latency_s: float = 0.0  # the exposure latency's σ (another error of the stamp)
-    # 31×31 cross terms between sources (their own diagonal blocks are ignored: those are the
+    sigma_arc_radius_mm: float = 0.0  # of every arc's radius, one error shared by the arcs
+    # 32×32 cross terms between sources (their own diagonal blocks are ignored: those are the
     # fields above, which a caller may replace alone), None: independent sources
     cross: FloatArray | None = None
 
     def covariance(self) -> FloatArray:
-        """The 31×31 input covariance: each source's block and the cross terms between them."""
+        """The 32×32 input covariance: each source's block and the cross terms between them."""
         S = np.zeros((N_INPUTS, N_INPUTS))
         if self.cross is not None:
             S[:] = self.cross
@@ -109,6 +114,7 @@ class BudgetInputs:
         stamp_var = self.sigma_clock_s**2 + self.sigma_latency_s**2
         S[28, 28] = self.sigma_s_mm**2 + stamp_var * self.speed_mm_s**2
         S[29, 29], S[30, 30] = self.sigma_head_rad[0] ** 2, self.sigma_head_rad[1] ** 2
+        S[31, 31] = self.sigma_arc_radius_mm**2
         return S
 
 
@@ -131,12 +137,16 @@ class Budget:
 def project(
     inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray, d: FloatArray
 ) -> FloatArray:
-    """Pixels (N,2) of workpiece points with every input perturbed by d (31,)."""
+    """Pixels (N,2) of workpiece points with every input perturbed by d (32,)."""
     vals = {k: getattr(inputs.camera, k) + d[i] for i, k in enumerate(CAMERA_KEYS)}
     cam = dataclasses.replace(inputs.camera, **vals)
-    rig = inputs.rig
+    rig, s = inputs.rig, s_mm + d[28]
+    track = rig.track
+    if d[31] != 0.0:  # the arcs bent to another radius; s on the drawn loop
+        s = float(track.wrap(s)) if track.closed else s
+        track = _bent(track, float(d[31]))
     T_w_k = rig.track.T_w_track @ _exp(d[16:22])
-    T_w_c = (T_w_k @ rig.track.local_pose(s_mm + d[28]) @ rig.T_t_r
+    T_w_c = (T_w_k @ track.local_pose(s) @ rig.T_t_r
              @ head_rotation(pan + d[29], tilt + d[30]) @ rig.T_r_c @ _exp(d[10:16]))  # fmt: skip
     T_w_p = inputs.T_w_p @ _exp(d[22:28])
     uv, _ = cam.project_world(invert_T(T_w_c) @ T_w_p, points_p)
@@ -146,7 +156,7 @@ def project(
 def jacobian(
     inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray
 ) -> FloatArray:
-    """∂u/∂inputs (2N × 31) by central differences."""
+    """∂u/∂inputs (2N × 32) by central differences."""
     J = np.empty((2 * len(points_p), N_INPUTS))
     for j in range(N_INPUTS):
         d = np.zeros(N_INPUTS)
@@ -247,6 +257,7 @@ def inputs_from_rig(
         (head, head), spec.camera.clock_sync.sigma / 1e3, speed_mm_s,
         pixel_noise_px=float(noise or 0.0), sigma_latency_s=spec.camera.latency.sigma / 1e3,
         cross=cross if spec.covariance is not None else None,
+        sigma_arc_radius_mm=spec.track.arc_radius_sigma_mm,
     )  # fmt: skip
 
 
@@ -260,6 +271,19 @@ def _factor(S: FloatArray) -> FloatArray:
     w, V = np.linalg.eigh(S)
     out: FloatArray = V * np.sqrt(np.clip(w, 0.0, None))
     return out
+
+
+def _bent(track: Track, d_radius_mm: float) -> Track:
+    """The track with every arc's radius d_radius_mm larger (its angle kept), left open."""
+    segs = []
+    for g in track.segments:
+        if g.curvature_per_mm == 0.0:
+            segs.append(g)
+            continue
+        r = 1.0 / abs(g.curvature_per_mm) + d_radius_mm
+        angle = g.length_mm * g.curvature_per_mm
+        segs.append(TrackSegment(r * abs(angle), math.copysign(1.0 / r, angle)))
+    return Track(tuple(segs), track.T_w_track, closed=False)
 
 
 def _exp(d: FloatArray) -> FloatArray:

@@ -237,8 +237,11 @@ def _table_array(r: _Reader, name: str, known: tuple[str, ...]) -> list[_Reader]
 def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
     t = r.sub(
         "track",
-        ("segments", "placement", "closed", "home", "marks", "travel_min_mm", "travel_max_mm"),
-    )
+        (
+            "segments", "placement", "closed", "home", "marks", "travel_min_mm", "travel_max_mm",
+            "arc_radius_sigma_mm",
+        ),
+    )  # fmt: skip
     segments = default.segments
     if t.has("segments"):
         known = ("kind", "length_mm", "radius_mm", "angle_deg")
@@ -258,6 +261,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         marks,
         t.optional("travel_min_mm", -1e6, 1e6),
         t.optional("travel_max_mm", -1e6, 1e7),
+        t.number("arc_radius_sigma_mm", default.arc_radius_sigma_mm, 0.0, 1e3),
     )
     _track_checks(spec, r.problems)
     return spec
@@ -397,7 +401,10 @@ def _covariance(r: _Reader, default: JointCovariance | None) -> JointCovariance 
     if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
         c.fail("names", "expected a list of block names")
         return default
-    size = sum(COVARIANCE_BLOCKS.get(n, 0) for n in names)
+    if not names or any(n not in COVARIANCE_BLOCKS for n in names):
+        c.fail("names", f"name known blocks ({', '.join(COVARIANCE_BLOCKS)})")
+        return default
+    size = sum(COVARIANCE_BLOCKS[n] for n in names)
     matrix = c.matrix("matrix", size, None)
     if matrix is None:
         if not c.has("matrix"):
@@ -470,6 +477,7 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
             "provenance": _prov_dict(t.marks.provenance),
         },
     }
+    track["arc_radius_sigma_mm"] = t.arc_radius_sigma_mm
     for key in ("closed", "travel_min_mm", "travel_max_mm"):
         if getattr(t, key) is not None:
             track[key] = getattr(t, key)

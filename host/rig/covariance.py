@@ -108,27 +108,33 @@ def joint_problems(spec: RigSpec) -> list[str]:
 def with_block(
     spec: RigSpec,
     name: str,
-    cov: FloatArray,
-    cross: Mapping[str, FloatArray],
+    noise: FloatArray,
     provenance: Provenance,
-) -> JointCovariance:
-    """`spec.covariance` with block `name` added (or replaced): its own covariance and its
-    cross terms Cov(δname, δother) with blocks measured through (e.g. a workpiece surveyed
-    through the rig, whose frame shares the track placement's error)."""
+    depends: Mapping[str, FloatArray] | None = None,
+    shared: Mapping[str, FloatArray] | None = None,
+) -> tuple[FloatArray, JointCovariance]:
+    """Block `name` measured through others: δname = Σ B_x δx + n, with B_x = depends[x] and
+    Cov(n) = noise (e.g. a workpiece surveyed through the track: its frame shares the track
+    placement's error). Its covariance, and `spec.covariance` extended with it (replaced if
+    there): cross terms with every block of the joint and of `depends` follow from the B's;
+    `shared[x]` adds Cov(n, δx) for an error n has in common with block x that is no block
+    itself (the board survey both the placement and a workpiece surveyed with it carry)."""
+    depends, shared = depends or {}, shared or {}
     old = spec.covariance
     names = [n for n in (old.names if old is not None else ()) if n != name]
-    for other in cross:
-        if other not in names:
-            names.append(other)
+    names += [n for n in (*depends, *shared) if n not in names]
     base = covariance_over(spec, names)
     at = np.cumsum([0, *(COVARIANCE_BLOCKS[n] for n in names)])
-    blocks = {n: base[at[i] : at[i + 1], at[i] : at[i + 1]] for i, n in enumerate(names)}
-    pairs = {
-        (a, b): base[at[i] : at[i + 1], at[j] : at[j + 1]]
-        for i, a in enumerate(names)
-        for j, b in enumerate(names)
-        if i < j
-    }
+    where = {n: slice(at[i], at[i + 1]) for i, n in enumerate(names)}
+    B = np.zeros((COVARIANCE_BLOCKS[name], at[-1]))
+    for x, Bx in depends.items():
+        B[:, where[x]] = Bx
+    cov = B @ base @ B.T + np.asarray(noise, dtype=np.float64)
+    cross_all = B @ base  # Cov(δname, δ everything in `names`)
+    for x, c in shared.items():
+        cross_all[:, where[x]] += c
+    blocks = {n: base[where[n], where[n]] for n in names}
+    pairs = {(a, b): base[where[a], where[b]] for a in names for b in names if a < b}
     blocks[name] = cov
-    pairs.update({(name, other): np.asarray(c) for other, c in cross.items()})
-    return joint_covariance(blocks, pairs, provenance)
+    pairs.update({(name, x): cross_all[:, where[x]] for x in names})
+    return cov, joint_covariance(blocks, pairs, provenance)

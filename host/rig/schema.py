@@ -66,6 +66,7 @@ NOMINAL_SIGMA_MOUNT_MM = (3.0, 3.0, 3.0)
 NOMINAL_SIGMA_PLACEMENT_RAD = (1e-3, 1e-3, 1e-3)
 NOMINAL_SIGMA_PLACEMENT_MM = (5.0, 5.0, 5.0)
 SURVEY_SIGMA_MM = 1.0  # a tape/total-station survey of a mark, a switch or a wall
+NOMINAL_SIGMA_ARC_RADIUS_MM = 2.0  # how far a bent arc's radius is off the drawing
 # Head angle read noise from its datasheet: encoder resolution 1e-4 rad (uniform, /√12) and
 # 2e-5 rad read noise, in quadrature.
 HEAD_RESOLUTION_RAD = 1e-4
@@ -246,6 +247,9 @@ class TrackSpec:
     # the trolley round it once); None: 0 and the length of an open track.
     travel_min_mm: float | None = None
     travel_max_mm: float | None = None
+    # σ of the arcs' radii against the drawing, one error shared by all arcs (bent on one jig);
+    # no calibration measures it: it moves the track beyond the arcs away from the placement
+    arc_radius_sigma_mm: float = NOMINAL_SIGMA_ARC_RADIUS_MM
 
     @property
     def length_mm(self) -> float:

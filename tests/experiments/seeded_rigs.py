@@ -130,9 +130,9 @@ def surveyed_workpiece(truth: RigSpec, rng: np.random.Generator) -> Pose6:
                  provenance=Provenance.now("survey (total station)"))  # fmt: skip
 
 
-def observation_poses(c: Commissioned, offsets_mm: Sequence[float], target_p: FloatArray) -> list[
-    tuple[float, float, float]
-]:
+def observation_poses(
+    c: Commissioned, offsets_mm: Sequence[float], target_p: FloatArray
+) -> list[tuple[float, float, float]]:
     """(s, pan, tilt) as the host knows them, aimed by the host at a workpiece point."""
     rig = build_kinematics(c.host)
     start = DemoRigs(c.host, c.truth, c.host, True).start_s_mm()
@@ -186,13 +186,13 @@ def board_relative_workpiece(c: Commissioned, rng: np.random.Generator) -> Commi
     Ad_pb = adjoint(invert_T(T_b_p))
     T_b_k = invert_T(c.T_w_b_surveyed) @ c.host.track.placement.matrix
     Ad_kb = adjoint(invert_T(T_b_k))
-    cov_p = Ad_pb @ cov_b @ Ad_pb.T + cov_rel
     prov = Provenance.now("survey (total station, in the board's frame)")
+    shared = {"track.placement": Ad_pb @ cov_b @ Ad_kb.T}
+    cov_p, joint = with_block(
+        c.host, "workpiece.frame", Ad_pb @ cov_b @ Ad_pb.T + cov_rel, prov, shared=shared
+    )
     frame = Pose6(T_w_p, *_sigmas(cov_p), covariance=cov_p, provenance=prov)
-    spec = with_updates(c.host, {"workpiece.frame": frame})
-    joint = with_block(spec, "workpiece.frame", cov_p,
-                       {"track.placement": Ad_pb @ cov_b @ Ad_kb.T}, prov)  # fmt: skip
-    spec = with_updates(spec, {"covariance": joint})
+    spec = with_updates(c.host, {"workpiece.frame": frame, "covariance": joint})
     return dataclasses.replace(c, host=loads_rig(dumps_rig(spec)))
 
 

@@ -33,7 +33,15 @@ def test_first_order_overlay_sigma_matches_monte_carlo(s_mm: float) -> None:
     mc = monte_carlo(inputs(), s_mm, pan, tilt, points, n=400, seed=1)
     assert first.sigma_px == pytest.approx(mc, rel=0.1)
     shares = first.by_source_px
-    assert set(shares) == {"intrinsics", "m_cr", "track", "workpiece", "arc_length", "head"}
+    assert set(shares) == {
+        "intrinsics",
+        "m_cr",
+        "track",
+        "workpiece",
+        "arc_length",
+        "head",
+        "arc_radius",
+    }
     total_sq = sum(v * v for v in shares.values())
     assert total_sq == pytest.approx(first.sigma_px**2, rel=1e-6)  # independent sources add
     assert first.point_cov.shape[1:] == (2, 2)
