@@ -24,7 +24,6 @@ Each case also prints the budget without the `[covariance]` cross terms (`_no_cr
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -33,44 +32,17 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from host.experiments.budget import inputs_from_rig, overlay_sigma, visible
 from host.geometry.model import manipulator_wireframe
-from host.rig import Pose6, RigSpec
+from host.rig import Pose6
 from tests.experiments.seeded_rigs import (
-    Commissioned,
     board_relative_workpiece,
     commission,
-    observation_poses,
-    overlay_errors,
+    predicted_and_measured,
     replace_workpiece,
 )
 
 OFFSETS_MM = (0.0, 300.0, 2000.0, 3000.0, 7000.0)  # the demo's three, then along the loop
 BOOTSTRAP = 2000
-
-
-def _no_cross(spec: RigSpec) -> RigSpec:
-    return dataclasses.replace(spec, covariance=None)
-
-
-def _case_rows(
-    rigs: list[Commissioned], points: np.ndarray, strip: bool
-) -> tuple[np.ndarray, np.ndarray]:
-    """(rigs × poses) measured mean-square error and predicted variance, px²."""
-    meas = np.full((len(rigs), len(OFFSETS_MM)), np.nan)
-    pred = np.full_like(meas, np.nan)
-    for i, c in enumerate(rigs):
-        poses = observation_poses(c, OFFSETS_MM, points.mean(axis=0))
-        inputs = inputs_from_rig(_no_cross(c.host) if strip else c.host)
-        rng = np.random.default_rng([c.seed, 7])
-        for j, pose in enumerate(poses):
-            pts = visible(inputs, *pose, points)
-            if len(pts) < 3:
-                continue
-            e = overlay_errors(c, [pose], pts, rng)[0]
-            meas[i, j] = float(np.mean(np.sum(e * e, axis=1)))
-            pred[i, j] = overlay_sigma(inputs, *pose, pts).sigma_px ** 2
-    return meas, pred
 
 
 def _ratio(meas: np.ndarray, pred: np.ndarray, rng: np.random.Generator) -> tuple[float, ...]:
@@ -105,7 +77,7 @@ def main() -> None:
     for name, rigs in cases.items():
         for strip in (False, True):
             tag = f"{name}{'_no_cross' if strip else ''}"
-            meas, pred = _case_rows(rigs, points, strip)
+            meas, pred = predicted_and_measured(rigs, OFFSETS_MM, points, strip)
             for j, off in enumerate(OFFSETS_MM):
                 col_m, col_p = meas[:, j], pred[:, j]
                 ok = np.isfinite(col_m)

@@ -37,6 +37,7 @@ from host.demo.commissioning_phase import (
     place_board,
 )
 from host.demo.rigs import DemoRigs, paper_demo_rig
+from host.experiments.budget import inputs_from_rig, overlay_sigma, visible
 from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R
 from host.rig import (
     Pose6,
@@ -201,3 +202,27 @@ def _sigmas(
 ) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     d = np.sqrt(np.diag(cov))
     return (float(d[0]), float(d[1]), float(d[2])), (float(d[3]), float(d[4]), float(d[5]))
+
+
+def predicted_and_measured(
+    rigs: Sequence[Commissioned], offsets_mm: Sequence[float], points_p: FloatArray,
+    without_cross: bool = False,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
+    """(rigs × poses) measured mean-square overlay error and the budget's variance, px², over
+    the points the budget sees in the image (NaN where fewer than 3); `without_cross`: the
+    budget of the same rig files with their `[covariance]` cross terms removed."""
+    meas = np.full((len(rigs), len(offsets_mm)), np.nan)
+    pred = np.full_like(meas, np.nan)
+    for i, c in enumerate(rigs):
+        poses = observation_poses(c, offsets_mm, points_p.mean(axis=0))
+        spec = dataclasses.replace(c.host, covariance=None) if without_cross else c.host
+        inputs = inputs_from_rig(spec)
+        rng = np.random.default_rng([c.seed, 7])
+        for j, pose in enumerate(poses):
+            pts = visible(inputs, *pose, points_p)
+            if len(pts) < 3:
+                continue
+            e = overlay_errors(c, [pose], pts, rng)[0]
+            meas[i, j] = float(np.mean(np.sum(e * e, axis=1)))
+            pred[i, j] = overlay_sigma(inputs, *pose, pts).sigma_px ** 2
+    return meas, pred
