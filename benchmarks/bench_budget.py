@@ -12,6 +12,9 @@ ratio per pose. The ratio predicted / measured should be 1 (issue 11: within ±3
 pooled ratio (all poses, so weighted to the largest errors) has a 68 % interval, a bootstrap
 over the rigs: with few rigs the measured σ is itself uncertain (~1/√(2·rigs·dof)).
 
+First, the joint covariance itself: the normalised error (NEES) of intrinsics, M_cr and
+placement against the truth, with the joint block and with it dropped (block-diagonal).
+
 Cases (the workpiece frame is what differs):
 - `surveyed`: the workpiece surveyed independently (total station, 1 mm / 1 mrad);
 - `rig_only`: the workpiece frame exact: the budget of the commissioned rig alone;
@@ -24,6 +27,7 @@ Each case also prints the budget without the `[covariance]` cross terms (`_no_cr
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -33,8 +37,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from host.geometry.model import manipulator_wireframe
-from host.rig import Pose6
+from host.geometry.transforms import R_to_rotvec
+from host.rig import Pose6, covariance_over
 from tests.experiments.seeded_rigs import (
+    Commissioned,
     board_relative_workpiece,
     commission,
     predicted_and_measured,
@@ -57,6 +63,33 @@ def _ratio(meas: np.ndarray, pred: np.ndarray, rng: np.random.Generator) -> tupl
     return r, float(lo), float(hi), float(np.sqrt(m.mean())), float(np.sqrt(p.mean()))
 
 
+JOINT = ("camera.intrinsics", "head.m_cr", "track.placement")
+
+
+def nees(c: Commissioned, block_diagonal: bool) -> tuple[float, int]:
+    """(est − truth)ᵀ Σ⁻¹ (est − truth) of what the head run solved together, and its dof.
+
+    Its mean over rigs should be the dof if the joint covariance is right (the parameters the
+    fit holds fixed, zero variance, are left out). The home survey's error, which the placement
+    absorbs, is not in the placement's Σ (1 mm against its several mm)."""
+    e, t = c.host, c.truth
+    d_cam = np.subtract(t.camera.intrinsics.values, e.camera.intrinsics.values)
+    d_pose = [_local(e.head.m_cr.matrix, t.head.m_cr.matrix),
+              _local(e.track.placement.matrix, t.track.placement.matrix)]  # fmt: skip
+    d = np.concatenate([d_cam, *d_pose])
+    spec = dataclasses.replace(e, covariance=None) if block_diagonal else e
+    S = covariance_over(spec, JOINT)
+    keep = np.diag(S) > 0
+    S, d = S[np.ix_(keep, keep)], d[keep]
+    return float(d @ np.linalg.solve(S, d)), int(keep.sum())
+
+
+def _local(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """δ with truth = est · exp(δ), (ω, t)."""
+    D = np.linalg.inv(est) @ truth
+    return np.concatenate([R_to_rotvec(D[:3, :3]), D[:3, 3]])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=16)
@@ -66,6 +99,13 @@ def main() -> None:
     base = [commission(seed) for seed in range(1, args.seeds + 1)]
     print(f"rigs: {len(base)}")
     print(f"commission_s_per_rig: {(time.perf_counter() - t0) / len(base):.1f}")
+    for block_diagonal in (False, True):
+        values = [nees(c, block_diagonal) for c in base]
+        tag = "block_diagonal" if block_diagonal else "joint"
+        print(
+            f"nees_{tag}_mean: {np.mean([v for v, _ in values]):.1f} "
+            f"(dof {values[0][1]}; median {np.median([v for v, _ in values]):.1f})"
+        )
     cases = {
         "surveyed": base,
         "rig_only": [replace_workpiece(c, Pose6(c.truth.workpiece.frame.matrix)) for c in base],

@@ -53,6 +53,8 @@ from host.rig import (
 
 WORKPIECE_SURVEY_RAD = 1e-3  # an independent total-station survey of the workpiece frame
 WORKPIECE_SURVEY_MM = 1.0
+HEAD_NOISE_SCALE = 1.0  # of the head angles' read noise in the views
+HEAD_NOISE_MODELLED = 1.0  # 0: the hand-eye covariance without the head angles' share
 
 
 @dataclass(frozen=True)
@@ -68,15 +70,21 @@ class Commissioned:
     T_w_b_surveyed: FloatArray
 
 
-def commission(seed: int, workpiece_surveyed: bool = True) -> Commissioned:
-    """Draw the rig, calibrate intrinsics then head on rendered views, write the rig file."""
+def commission(
+    seed: int, workpiece_surveyed: bool = True, projected_noise_px: float | None = None
+) -> Commissioned:
+    """Draw the rig, calibrate intrinsics then head on rendered views, write the rig file.
+
+    `projected_noise_px`: instead of rendering and detecting, the board's corners projected
+    through the truth with independent Gaussian noise of that σ per axis (the solvers' own
+    noise model: separates what detection adds from what the covariances claim)."""
     nominal = paper_demo_rig()
     truth = true_rig(nominal, seed)
     rigs = DemoRigs(nominal, truth, nominal, True)
     setup = place_board(rigs, seed)
     rng = np.random.default_rng([seed, 0xB0D6E7])
     home_err = float(rng.normal(0.0, nominal.track.home.sigma))
-    head_sig = nominal.head.angle_noise.sigma
+    head_sig = nominal.head.angle_noise.sigma * HEAD_NOISE_SCALE
     host_rig, host_cam = build_kinematics(nominal), build_camera(nominal)
     true_kin, true_cam = build_kinematics(truth), build_camera(truth)
     s0 = setup.s_mm
@@ -88,6 +96,7 @@ def commission(seed: int, workpiece_surveyed: bool = True) -> Commissioned:
     sim = SyntheticCamera(true_cam, seed=seed)
     det = BoardDetector(BOARD)
     T_w_b = setup.placed.T_w_b
+    corners = np.asarray(setup.placed.board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
 
     def capture() -> list[HandEyeView]:
         out = []
@@ -95,11 +104,17 @@ def commission(seed: int, workpiece_surveyed: bool = True) -> Commissioned:
             # the host commands s as it knows it: the trolley stands home_err short of it
             s_true = v.s_mm - home_err
             T_c_b = invert_T(true_kin.T_w_c(s_true, v.pan_rad, v.tilt_rad)) @ T_w_b
-            found = det.detect(sim.render_board(T_c_b, setup.placed.board).image)
-            if found is None:
-                continue
+            if projected_noise_px is None:
+                found = det.detect(sim.render_board(T_c_b, setup.placed.board).image)
+                if found is None:
+                    continue
+                obj, img = found.object_points, found.image_points
+            else:
+                obj = corners
+                img, _ = true_cam.project_world(T_c_b, obj)
+                img = img + rng.normal(0.0, projected_noise_px, img.shape)
             pan, tilt = (a + float(rng.normal(0.0, head_sig)) for a in (v.pan_rad, v.tilt_rad))
-            out.append(HandEyeView(v.s_mm, pan, tilt, found.object_points, found.image_points))
+            out.append(HandEyeView(v.s_mm, pan, tilt, obj, img))
         return out
 
     intr_views = capture()
@@ -111,7 +126,7 @@ def commission(seed: int, workpiece_surveyed: bool = True) -> Commissioned:
     cov_b = np.diag([BOARD_SURVEY_SIGMA_RAD**2] * 3 + [BOARD_SURVEY_SIGMA_MM**2] * 3)
     head = calibrate_handeye(
         capture(), host_rig.track, res.camera, host_rig.T_t_r, setup.T_w_b_surveyed, cov_b,
-        cam_cov,
+        cam_cov, HEAD_NOISE_MODELLED * nominal.head.angle_noise.sigma,
     )  # fmt: skip
     spec = with_updates(spec, head_rig_update(HeadOutcome(True, [], [], head), True))
     if workpiece_surveyed:
