@@ -27,7 +27,6 @@ Each case also prints the budget without the `[covariance]` cross terms (`_no_cr
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -37,12 +36,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from host.geometry.model import manipulator_wireframe
-from host.geometry.transforms import R_to_rotvec
-from host.rig import Pose6, covariance_over
+from host.rig import Pose6
 from tests.experiments.seeded_rigs import (
-    Commissioned,
     board_relative_workpiece,
     commission,
+    joint_nees,
     predicted_and_measured,
     replace_workpiece,
 )
@@ -63,33 +61,6 @@ def _ratio(meas: np.ndarray, pred: np.ndarray, rng: np.random.Generator) -> tupl
     return r, float(lo), float(hi), float(np.sqrt(m.mean())), float(np.sqrt(p.mean()))
 
 
-JOINT = ("camera.intrinsics", "head.m_cr", "track.placement")
-
-
-def nees(c: Commissioned, block_diagonal: bool) -> tuple[float, int]:
-    """(est − truth)ᵀ Σ⁻¹ (est − truth) of what the head run solved together, and its dof.
-
-    Its mean over rigs should be the dof if the joint covariance is right (the parameters the
-    fit holds fixed, zero variance, are left out). The home survey's error, which the placement
-    absorbs, is not in the placement's Σ (1 mm against its several mm)."""
-    e, t = c.host, c.truth
-    d_cam = np.subtract(t.camera.intrinsics.values, e.camera.intrinsics.values)
-    d_pose = [_local(e.head.m_cr.matrix, t.head.m_cr.matrix),
-              _local(e.track.placement.matrix, t.track.placement.matrix)]  # fmt: skip
-    d = np.concatenate([d_cam, *d_pose])
-    spec = dataclasses.replace(e, covariance=None) if block_diagonal else e
-    S = covariance_over(spec, JOINT)
-    keep = np.diag(S) > 0
-    S, d = S[np.ix_(keep, keep)], d[keep]
-    return float(d @ np.linalg.solve(S, d)), int(keep.sum())
-
-
-def _local(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
-    """δ with truth = est · exp(δ), (ω, t)."""
-    D = np.linalg.inv(est) @ truth
-    return np.concatenate([R_to_rotvec(D[:3, :3]), D[:3, 3]])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=16)
@@ -100,7 +71,7 @@ def main() -> None:
     print(f"rigs: {len(base)}")
     print(f"commission_s_per_rig: {(time.perf_counter() - t0) / len(base):.1f}")
     for block_diagonal in (False, True):
-        values = [nees(c, block_diagonal) for c in base]
+        values = [joint_nees(c, block_diagonal) for c in base]
         tag = "block_diagonal" if block_diagonal else "joint"
         print(
             f"nees_{tag}_mean: {np.mean([v for v, _ in values]):.1f} "

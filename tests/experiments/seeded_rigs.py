@@ -38,13 +38,14 @@ from host.demo.commissioning_phase import (
 )
 from host.demo.rigs import DemoRigs, paper_demo_rig
 from host.experiments.budget import inputs_from_rig, overlay_sigma, visible
-from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R
+from host.geometry.transforms import FloatArray, R_to_rotvec, invert_T, make_T, rotvec_to_R
 from host.rig import (
     Pose6,
     Provenance,
     RigSpec,
     build_camera,
     build_kinematics,
+    covariance_over,
     dumps_rig,
     loads_rig,
     with_block,
@@ -241,3 +242,30 @@ def predicted_and_measured(
             meas[i, j] = float(np.mean(np.sum(e * e, axis=1)))
             pred[i, j] = overlay_sigma(inputs, *pose, pts).sigma_px ** 2
     return meas, pred
+
+
+JOINT = ("camera.intrinsics", "head.m_cr", "track.placement")
+
+
+def joint_nees(c: Commissioned, block_diagonal: bool = False) -> tuple[float, int]:
+    """(truth − est)ᵀ Σ⁻¹ (truth − est) of what the head run solved together, and its dof.
+
+    Its mean over rigs should be the dof if the joint covariance is right (the parameters the
+    fit holds fixed, zero variance, are left out). The home survey's error, which the placement
+    absorbs, is not in the placement's Σ (1 mm against its several mm)."""
+    e, t = c.host, c.truth
+    d_cam = np.subtract(t.camera.intrinsics.values, e.camera.intrinsics.values)
+    d_pose = [_local(e.head.m_cr.matrix, t.head.m_cr.matrix),
+              _local(e.track.placement.matrix, t.track.placement.matrix)]  # fmt: skip
+    d = np.concatenate([d_cam, *d_pose])
+    spec = dataclasses.replace(e, covariance=None) if block_diagonal else e
+    S = covariance_over(spec, JOINT)
+    keep = np.diag(S) > 0
+    S, d = S[np.ix_(keep, keep)], d[keep]
+    return float(d @ np.linalg.solve(S, d)), int(keep.sum())
+
+
+def _local(est: FloatArray, truth: FloatArray) -> FloatArray:
+    """δ with truth = est · exp(δ), (ω, t)."""
+    D = invert_T(est) @ truth
+    return np.concatenate([R_to_rotvec(D[:3, :3]), D[:3, 3]])
