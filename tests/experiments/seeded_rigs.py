@@ -54,8 +54,6 @@ from host.rig import (
 
 WORKPIECE_SURVEY_RAD = 1e-3  # an independent total-station survey of the workpiece frame
 WORKPIECE_SURVEY_MM = 1.0
-HEAD_NOISE_SCALE = 1.0  # of the head angles' read noise in the views
-HEAD_NOISE_MODELLED = 1.0  # 0: the hand-eye covariance without the head angles' share
 
 
 @dataclass(frozen=True)
@@ -72,20 +70,24 @@ class Commissioned:
 
 
 def commission(
-    seed: int, workpiece_surveyed: bool = True, projected_noise_px: float | None = None
+    seed: int,
+    workpiece_surveyed: bool = True,
+    projected_noise_px: float | None = None,
+    head_noise_modelled: bool = True,
 ) -> Commissioned:
     """Draw the rig, calibrate intrinsics then head on rendered views, write the rig file.
 
     `projected_noise_px`: instead of rendering and detecting, the board's corners projected
     through the truth with independent Gaussian noise of that σ per axis (the solvers' own
-    noise model: separates what detection adds from what the covariances claim)."""
+    noise model: separates what detection adds from what the covariances claim).
+    `head_noise_modelled` False: the hand-eye covariance without the head angles' share."""
     nominal = paper_demo_rig()
     truth = true_rig(nominal, seed)
     rigs = DemoRigs(nominal, truth, nominal, True)
     setup = place_board(rigs, seed)
     rng = np.random.default_rng([seed, 0xB0D6E7])
     home_err = float(rng.normal(0.0, nominal.track.home.sigma))
-    head_sig = nominal.head.angle_noise.sigma * HEAD_NOISE_SCALE
+    head_sig = nominal.head.angle_noise.sigma
     host_rig, host_cam = build_kinematics(nominal), build_camera(nominal)
     true_kin, true_cam = build_kinematics(truth), build_camera(truth)
     s0 = setup.s_mm
@@ -127,7 +129,7 @@ def commission(
     cov_b = np.diag([BOARD_SURVEY_SIGMA_RAD**2] * 3 + [BOARD_SURVEY_SIGMA_MM**2] * 3)
     head = calibrate_handeye(
         capture(), host_rig.track, res.camera, host_rig.T_t_r, setup.T_w_b_surveyed, cov_b,
-        cam_cov, HEAD_NOISE_MODELLED * nominal.head.angle_noise.sigma,
+        cam_cov, head_sig if head_noise_modelled else 0.0,
     )  # fmt: skip
     spec = with_updates(spec, head_rig_update(HeadOutcome(True, [], [], head), True))
     if workpiece_surveyed:
