@@ -71,14 +71,10 @@ class HandEyeResult:
     per_view_rms_px: FloatArray
     residuals_px: list[FloatArray]
     # Cov(δ(M_cr, T_b_track), δθ), 12×10, and the camera covariance Σθ it came from: the fit
-    # moves with the camera's error (None when no camera covariance was given)
+    # moves with the camera's error (None when no camera covariance was given); T_w_track's
+    # is T_b_track's, the board survey being independent of the camera
     camera_cross: FloatArray | None = None
     camera_cov: FloatArray | None = None
-
-    @property
-    def track_camera_cross(self) -> FloatArray | None:
-        """Cov(δ T_w_track, δθ): the board survey is independent of the camera."""
-        return None if self.camera_cross is None else self.camera_cross[6:]
 
     @property
     def cov_M_cr(self) -> FloatArray:
