@@ -41,6 +41,7 @@ from host.geometry.transforms import (
 
 MIN_VIEWS = 3
 LM_STEP = 1e-6  # finite-difference step for the Jacobian (rad and mm)
+HEAD_STEP = 1e-6  # rad, for the head angles' share
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,11 @@ class HandEyeResult:
     track_covariance: FloatArray  # 6×6 of T_w_track, the board survey's included
     per_view_rms_px: FloatArray
     residuals_px: list[FloatArray]
+    # Cov(δ(M_cr, T_b_track), δθ), 12×10, and the camera covariance Σθ it came from: the fit
+    # moves with the camera's error (None when no camera covariance was given); T_w_track's
+    # is T_b_track's, the board survey being independent of the camera
+    camera_cross: FloatArray | None = None
+    camera_cov: FloatArray | None = None
 
     @property
     def cov_M_cr(self) -> FloatArray:
@@ -91,12 +97,15 @@ def calibrate_handeye(
     T_w_b: ArrayLike | None = None,
     cov_T_w_b: ArrayLike | None = None,
     camera_cov: ArrayLike | None = None,
+    head_sigma_rad: float = 0.0,
 ) -> HandEyeResult:
     """Solve M_cr and T_w_track; T_w_b is the target's surveyed world pose (default: world = b).
 
     `camera_cov` (10×10 over CAMERA_KEYS, e.g. from the intrinsics calibration) adds the
     camera's own uncertainty to the result's: a focal length off by 0.1 % moves the camera by
-    0.1 % of the board distance, far more than the pixel noise does.
+    0.1 % of the board distance, far more than the pixel noise does. `head_sigma_rad` (the
+    head angles' read noise) adds theirs: it turns a whole view at once, so with tens of
+    corners a view it can outweigh the pixel noise in M_cr's rotation.
     """
     if len(views) < MIN_VIEWS:
         raise ValueError(f"need at least {MIN_VIEWS} views, got {len(views)}")
@@ -110,8 +119,14 @@ def calibrate_handeye(
     r = problem.residuals(M_cr, T_b_k)
     J = problem.jacobian(M_cr, T_b_k, r)
     cov = lsq.covariance(J, r)  # linearised at the solution, in its own local frame
+    cam_cov = cross = None
     if camera_cov is not None:
-        cov = cov + _camera_term(problem, M_cr, T_b_k, J, np.asarray(camera_cov, dtype=np.float64))
+        cam_cov = np.asarray(camera_cov, dtype=np.float64)
+        A = _camera_term(problem, M_cr, T_b_k, J, cam_cov)
+        cov, cross = cov + A @ cam_cov @ A.T, A @ cam_cov
+    if head_sigma_rad > 0.0:
+        A_h = _head_term(problem, views, track, mount, M_cr, T_b_k, J)
+        cov = cov + head_sigma_rad**2 * (A_h @ A_h.T)
     rot_res, trans_res = _pose_residuals(M_cr, T_b_k, T_k_r, T_c_b)
     T_wb = np.eye(4) if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
     cov_wb = np.zeros((6, 6)) if cov_T_w_b is None else np.asarray(cov_T_w_b, dtype=np.float64)
@@ -121,7 +136,7 @@ def calibrate_handeye(
     rms_v = np.array([float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) for e in per_view])
     return HandEyeResult(
         M_cr, T_b_k, T_wb @ T_b_k, problem.rms(M_cr, T_b_k), initial, rot_res, trans_res,
-        cov, cov_wk, rms_v, per_view,
+        cov, cov_wk, rms_v, per_view, cross, cam_cov,
     )  # fmt: skip
 
 
@@ -132,7 +147,7 @@ CAMERA_STEPS = (1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-7, 1e-7, 1e-7, 1e-7, 1e-7)
 def _camera_term(
     problem: _Problem, M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray, cam_cov: FloatArray
 ) -> FloatArray:
-    """Covariance the camera's uncertainty adds: x moves by −(JᵀJ)⁻¹Jᵀ J_θ δθ."""
+    """How the fit moves with the camera's error: δx = A δθ, A = −(JᵀJ)⁻¹Jᵀ J_θ."""
     base = problem.camera
     r0 = problem.residuals(M_cr, T_b_k)
     J_theta = np.zeros((r0.size, len(CAMERA_KEYS)))
@@ -142,8 +157,25 @@ def _camera_term(
         problem.camera = dataclasses.replace(base, **{key: getattr(base, key) + step})
         J_theta[:, j] = (problem.residuals(M_cr, T_b_k) - r0) / step
     problem.camera = base
-    A = -np.linalg.pinv(J.T @ J) @ J.T @ J_theta
-    out: FloatArray = A @ cam_cov @ A.T
+    out: FloatArray = -np.linalg.pinv(J.T @ J) @ J.T @ J_theta
+    return out
+
+
+def _head_term(
+    problem: _Problem, views: Sequence[HandEyeView], track: Track, mount: FloatArray,
+    M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray,
+) -> FloatArray:  # fmt: skip
+    """How the fit moves with each view's head angles: δx = A_h δh, δh = (pan, tilt) per view."""
+    r0 = problem.residuals(M_cr, T_b_k)
+    J_h = np.zeros((r0.size, 2 * len(views)))
+    for i, v in enumerate(views):
+        saved = problem.T_r_k[i]
+        for j, (dp, dt) in enumerate(((HEAD_STEP, 0.0), (0.0, HEAD_STEP))):
+            T = track.local_pose(v.s_mm) @ mount @ head_rotation(v.pan_rad + dp, v.tilt_rad + dt)
+            problem.T_r_k[i] = invert_T(T)
+            J_h[:, 2 * i + j] = (problem.residuals(M_cr, T_b_k) - r0) / HEAD_STEP
+        problem.T_r_k[i] = saved
+    out: FloatArray = -np.linalg.pinv(J.T @ J) @ J.T @ J_h
     return out
 
 

@@ -27,7 +27,7 @@ from host.experiments.budget import BudgetInputs, overlay_sigma
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.transforms import FloatArray, R_to_rotvec
-from host.rig import Pose6, Provenance
+from host.rig import Pose6, Provenance, joint_covariance
 
 
 @dataclass(frozen=True)
@@ -166,7 +166,9 @@ def judge_head(
 
 
 def head_rig_update(outcome: HeadOutcome, board_surveyed: bool) -> dict[str, Any]:
-    """`head.m_cr` (and `track.placement` when the board's world pose was surveyed)."""
+    """`head.m_cr` (and `track.placement` when the board's world pose was surveyed), and the
+    joint `covariance` of what was solved together: M_cr, the placement and the intrinsics the
+    solve took as known (a focal length off moves the camera along its axis)."""
     res = outcome.result
     if res is None or not outcome.passed:
         raise ValueError("only a passing calibration is written")
@@ -175,6 +177,18 @@ def head_rig_update(outcome: HeadOutcome, board_surveyed: bool) -> dict[str, Any
     updates: dict[str, Any] = {"head.m_cr": _pose6(res.M_cr, res.cov_M_cr, prov)}
     if board_surveyed:
         updates["track.placement"] = _pose6(res.T_w_track, res.track_covariance, prov)
+    blocks = {"head.m_cr": res.cov_M_cr}
+    cross = {}
+    if board_surveyed:
+        blocks["track.placement"] = res.track_covariance
+        cross[("head.m_cr", "track.placement")] = res.covariance[:6, 6:]
+    if res.camera_cov is not None and res.camera_cross is not None:
+        blocks["camera.intrinsics"] = res.camera_cov
+        cross[("head.m_cr", "camera.intrinsics")] = res.camera_cross[:6]
+        if board_surveyed:
+            cross[("track.placement", "camera.intrinsics")] = res.camera_cross[6:]
+    if len(blocks) > 1:
+        updates["covariance"] = joint_covariance(blocks, cross, prov)
     return updates
 
 

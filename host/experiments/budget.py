@@ -6,16 +6,26 @@ The overlay of a workpiece point X_p is u = π_θ(T_c_w(s, pan, tilt) · T_w_p �
 
 Every calibrated quantity enters: the intrinsics θ (10, Table 1's and p1, p2, k3), M_cr and the
 track placement and the workpiece frame (local perturbations δ = (ω, t), as the rig file keeps
-their covariances), the arc length s (the chain filter's σ, plus clock-sync error × speed: a
-stamp off by δt puts the trolley v·δt away), and the head angles (their noise). First order:
-Σ_u = J Σ Jᵀ with J by central differences over all 31 inputs, so each source's share is its
-own block's J Σ Jᵀ. `monte_carlo` samples the same inputs through the same projection; the test
-holds the two together.
+their covariances), the arc length s (the chain filter's σ, plus the stamp's error × speed: a
+stamp off by δt, from clock sync or the exposure latency's σ, puts the trolley v·δt away), and
+the head angles (their noise). Blocks solved together are correlated (the rig file's
+`[covariance]`: a focal length a little long and a camera a little farther away draw the same
+overlay), and the cross terms enter Σ. First order: Σ_u = J Σ Jᵀ with J by central differences
+over all 32 inputs; each source's share is its own block's J Σ Jᵀ (the shares do not add up to
+the total when sources are correlated: the cross terms are in the total only). `monte_carlo`
+samples the same inputs through the same projection; the test holds the two together.
+
+What it predicts: the spread of the overlay's error over rigs calibrated like this one, i.e.
+drawn minus true pixel of a workpiece point, whose frame is known as the rig file says. A
+workpiece surveyed through the rig itself shares the rig's errors, which then cancel in part:
+the budget sees that only when the survey writes its cross terms into `[covariance]`
+(`host.rig.joint_covariance`); without them it predicts an independently surveyed workpiece.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -23,11 +33,28 @@ import numpy as np
 
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig, head_rotation
+from host.geometry.track import Segment as TrackSegment
+from host.geometry.track import Track
 from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R
-from host.rig import RigSpec, build_camera, build_kinematics, workpiece_pose
+from host.rig import (
+    COVARIANCE_BLOCKS,
+    INTRINSIC_KEYS,
+    RigSpec,
+    build_camera,
+    build_kinematics,
+    covariance_over,
+    workpiece_pose,
+)
 
-CAMERA_KEYS = ("fx", "fy", "skew", "u0", "v0", "k1", "k2", "p1", "p2", "k3")
-SOURCES = ("intrinsics", "m_cr", "track", "workpiece", "arc_length", "head")
+CAMERA_KEYS = INTRINSIC_KEYS
+SOURCES = ("intrinsics", "m_cr", "track", "workpiece", "arc_length", "head", "arc_radius")
+# The rig file's block of each calibrated source (their cross terms come from `[covariance]`).
+RIG_BLOCKS = {
+    "intrinsics": "camera.intrinsics",
+    "m_cr": "head.m_cr",
+    "track": "track.placement",
+    "workpiece": "workpiece.frame",
+}
 SLICES = {
     "intrinsics": slice(0, 10),
     "m_cr": slice(10, 16),
@@ -35,12 +62,13 @@ SLICES = {
     "workpiece": slice(22, 28),
     "arc_length": slice(28, 29),
     "head": slice(29, 31),
+    "arc_radius": slice(31, 32),
 }
-N_INPUTS = 31
+N_INPUTS = 32
 STEPS = np.concatenate([
     [1e-3] * 5, [1e-6] * 5,  # intrinsics: px, then distortion
     [1e-7] * 3 + [1e-4] * 3, [1e-7] * 3 + [1e-4] * 3, [1e-7] * 3 + [1e-4] * 3,  # poses
-    [1e-4], [1e-7, 1e-7],  # s mm, head rad
+    [1e-4], [1e-7, 1e-7], [1e-3],  # s mm, head rad, arc radius mm
 ])  # fmt: skip
 
 
@@ -62,20 +90,31 @@ class BudgetInputs:
     sigma_s_mm: float = 0.0  # the chain filter's σ of the arc length
     sigma_head_rad: tuple[float, float] = (0.0, 0.0)  # pan, tilt noise
     sigma_clock_s: float = 0.0  # clock-sync error of a frame's stamp
-    speed_mm_s: float = 0.0  # the trolley's speed (the clock error's lever)
+    speed_mm_s: float = 0.0  # the trolley's speed (the stamp error's lever)
     # 2-D RMS noise of a *detected* image point (the intrinsics fit's residual): not part of
     # the overlay's σ (the overlay is drawn, not detected), added when predicting a measurement
     pixel_noise_px: float = 0.0
+    sigma_latency_s: float = 0.0  # the exposure latency's σ (another error of the stamp)
+    sigma_arc_radius_mm: float = 0.0  # of every arc's radius, one error shared by the arcs
+    # 32×32 cross terms between sources (their own diagonal blocks are ignored: those are the
+    # fields above, which a caller may replace alone), None: independent sources
+    cross: FloatArray | None = None
 
     def covariance(self) -> FloatArray:
-        """The 31×31 input covariance (block-diagonal between sources)."""
+        """The 32×32 input covariance: each source's block and the cross terms between them."""
         S = np.zeros((N_INPUTS, N_INPUTS))
+        if self.cross is not None:
+            S[:] = self.cross
+            for sl in SLICES.values():
+                S[sl, sl] = 0.0
         S[SLICES["intrinsics"], SLICES["intrinsics"]] = self.camera_cov
         S[SLICES["m_cr"], SLICES["m_cr"]] = self.m_cr_cov
         S[SLICES["track"], SLICES["track"]] = self.track_cov
         S[SLICES["workpiece"], SLICES["workpiece"]] = self.workpiece_cov
-        S[28, 28] = self.sigma_s_mm**2 + (self.sigma_clock_s * self.speed_mm_s) ** 2
+        stamp_var = self.sigma_clock_s**2 + self.sigma_latency_s**2
+        S[28, 28] = self.sigma_s_mm**2 + stamp_var * self.speed_mm_s**2
         S[29, 29], S[30, 30] = self.sigma_head_rad[0] ** 2, self.sigma_head_rad[1] ** 2
+        S[31, 31] = self.sigma_arc_radius_mm**2
         return S
 
 
@@ -98,12 +137,16 @@ class Budget:
 def project(
     inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray, d: FloatArray
 ) -> FloatArray:
-    """Pixels (N,2) of workpiece points with every input perturbed by d (31,)."""
+    """Pixels (N,2) of workpiece points with every input perturbed by d (32,)."""
     vals = {k: getattr(inputs.camera, k) + d[i] for i, k in enumerate(CAMERA_KEYS)}
     cam = dataclasses.replace(inputs.camera, **vals)
-    rig = inputs.rig
+    rig, s = inputs.rig, s_mm + d[28]
+    track = rig.track
+    if d[31] != 0.0:  # the arcs bent to another radius; s on the drawn loop
+        s = float(track.wrap(s)) if track.closed else s
+        track = _bent(track, float(d[31]))
     T_w_k = rig.track.T_w_track @ _exp(d[16:22])
-    T_w_c = (T_w_k @ rig.track.local_pose(s_mm + d[28]) @ rig.T_t_r
+    T_w_c = (T_w_k @ track.local_pose(s) @ rig.T_t_r
              @ head_rotation(pan + d[29], tilt + d[30]) @ rig.T_r_c @ _exp(d[10:16]))  # fmt: skip
     T_w_p = inputs.T_w_p @ _exp(d[22:28])
     uv, _ = cam.project_world(invert_T(T_w_c) @ T_w_p, points_p)
@@ -113,7 +156,7 @@ def project(
 def jacobian(
     inputs: BudgetInputs, s_mm: float, pan: float, tilt: float, points_p: FloatArray
 ) -> FloatArray:
-    """∂u/∂inputs (2N × 31) by central differences."""
+    """∂u/∂inputs (2N × 32) by central differences."""
     J = np.empty((2 * len(points_p), N_INPUTS))
     for j in range(N_INPUTS):
         d = np.zeros(N_INPUTS)
@@ -192,22 +235,29 @@ def points_sigma(
     return [overlay_sigma(inputs, s, p, t, points_p).sigma_px for s, p, t in poses]
 
 
-def inputs_from_rig(spec: RigSpec, sigma_s_mm: float | None = None) -> BudgetInputs:
-    """The budget of a rig file: each block's covariance; the arc length's σ from its marks.
-
-    The rig file holds no head-angle noise and no clock-sync error (they are the controller's
-    and the link's, not calibrated values): they stay 0 here unless a caller sets them.
-    """
+def inputs_from_rig(
+    spec: RigSpec, sigma_s_mm: float | None = None, speed_mm_s: float = 0.0
+) -> BudgetInputs:
+    """The budget of a rig file at a trolley speed: each block's covariance and the cross terms
+    of `[covariance]`; the arc length's σ from its marks (or the chain filter's, if given); the
+    head's angle noise; the stamp's clock-sync and latency σ."""
+    names = tuple(RIG_BLOCKS.values())
+    joint = covariance_over(spec, names)
+    at = np.cumsum([0, *(COVARIANCE_BLOCKS[n] for n in names)])
+    blocks = [joint[at[i] : at[i + 1], at[i] : at[i + 1]] for i in range(len(names))]
+    cross = np.zeros((N_INPUTS, N_INPUTS))
+    cross[: at[-1], : at[-1]] = joint  # RIG_BLOCKS are the first sources, in SLICES order
     intr = spec.camera.intrinsics
-    cam_cov = (
-        np.array(intr.covariance) if intr.covariance is not None else np.diag(np.square(intr.sigma))
-    )
     s_sig = spec.track.marks.sigma_mm if sigma_s_mm is None else sigma_s_mm
     noise = intr.provenance.residual if intr.provenance.residual_unit == "px" else None
+    head = spec.head.angle_noise.sigma
     return BudgetInputs(
-        build_kinematics(spec), build_camera(spec), workpiece_pose(spec), cam_cov,
-        spec.head.m_cr.cov(), spec.track.placement.cov(), spec.workpiece.frame.cov(), s_sig,
-        pixel_noise_px=float(noise or 0.0),
+        build_kinematics(spec), build_camera(spec), workpiece_pose(spec),
+        blocks[0], blocks[1], blocks[2], blocks[3], s_sig,
+        (head, head), spec.camera.clock_sync.sigma / 1e3, speed_mm_s,
+        pixel_noise_px=float(noise or 0.0), sigma_latency_s=spec.camera.latency.sigma / 1e3,
+        cross=cross if spec.covariance is not None else None,
+        sigma_arc_radius_mm=spec.track.arc_radius_sigma_mm,
     )  # fmt: skip
 
 
@@ -221,6 +271,19 @@ def _factor(S: FloatArray) -> FloatArray:
     w, V = np.linalg.eigh(S)
     out: FloatArray = V * np.sqrt(np.clip(w, 0.0, None))
     return out
+
+
+def _bent(track: Track, d_radius_mm: float) -> Track:
+    """The track with every arc's radius d_radius_mm larger (its angle kept), left open."""
+    segs = []
+    for g in track.segments:
+        if g.curvature_per_mm == 0.0:
+            segs.append(g)
+            continue
+        r = 1.0 / abs(g.curvature_per_mm) + d_radius_mm
+        angle = g.length_mm * g.curvature_per_mm
+        segs.append(TrackSegment(r * abs(angle), math.copysign(1.0 / r, angle)))
+    return Track(tuple(segs), track.T_w_track, closed=False)
 
 
 def _exp(d: FloatArray) -> FloatArray:

@@ -21,7 +21,9 @@ from host.config_fields import ConfigError
 from host.geometry.head import rotation_problem
 from host.geometry.rangefinder import unit_normal
 from host.geometry.track import Track
+from host.rig.covariance import joint_problems
 from host.rig.schema import (
+    COVARIANCE_BLOCKS,
     FORMAT_VERSION,
     INTRINSIC_KEYS,
     SEGMENT_KINDS,
@@ -29,6 +31,7 @@ from host.rig.schema import (
     HallSpec,
     HeadSpec,
     Intrinsics,
+    JointCovariance,
     Marks,
     Pose6,
     Provenance,
@@ -234,8 +237,11 @@ def _table_array(r: _Reader, name: str, known: tuple[str, ...]) -> list[_Reader]
 def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
     t = r.sub(
         "track",
-        ("segments", "placement", "closed", "home", "marks", "travel_min_mm", "travel_max_mm"),
-    )
+        (
+            "segments", "placement", "closed", "home", "marks", "travel_min_mm", "travel_max_mm",
+            "arc_radius_sigma_mm",
+        ),
+    )  # fmt: skip
     segments = default.segments
     if t.has("segments"):
         known = ("kind", "length_mm", "radius_mm", "angle_deg")
@@ -255,6 +261,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         marks,
         t.optional("travel_min_mm", -1e6, 1e6),
         t.optional("travel_max_mm", -1e6, 1e7),
+        t.number("arc_radius_sigma_mm", default.arc_radius_sigma_mm, 0.0, 1e3),
     )
     _track_checks(spec, r.problems)
     return spec
@@ -311,7 +318,10 @@ def _hall(r: _Reader) -> HallSpec:
 
 
 def _head(r: _Reader, default: HeadSpec) -> HeadSpec:
-    h = r.sub("head", ("m_cr", "pan_min_deg", "pan_max_deg", "tilt_min_deg", "tilt_max_deg"))
+    h = r.sub(
+        "head",
+        ("m_cr", "pan_min_deg", "pan_max_deg", "tilt_min_deg", "tilt_max_deg", "angle_noise"),
+    )
 
     def deg(name: str, value: float, lim: float) -> float:
         return math.radians(h.number(name, math.degrees(value), -lim, lim))
@@ -322,6 +332,7 @@ def _head(r: _Reader, default: HeadSpec) -> HeadSpec:
         deg("pan_max_deg", default.pan_max_rad, 360.0),
         deg("tilt_min_deg", default.tilt_min_rad, 180.0),
         deg("tilt_max_deg", default.tilt_max_rad, 180.0),
+        _scalar(h, "angle_noise", default.angle_noise, "rad", -0.1, 0.1),
     )
     if spec.pan_min_rad >= spec.pan_max_rad:
         h.fail("pan_min_deg", "must be below head.pan_max_deg")
@@ -359,7 +370,9 @@ def _intrinsics(r: _Reader, default: Intrinsics) -> Intrinsics:
 
 
 def _camera(r: _Reader, default: CameraSpec) -> CameraSpec:
-    c = r.sub("camera", ("width", "height", "fps", "intrinsics", "latency", "trigger"))
+    c = r.sub(
+        "camera", ("width", "height", "fps", "intrinsics", "latency", "trigger", "clock_sync")
+    )
     return CameraSpec(
         c.integer("width", default.width, 1, 16384),
         c.integer("height", default.height, 1, 16384),
@@ -367,6 +380,7 @@ def _camera(r: _Reader, default: CameraSpec) -> CameraSpec:
         _intrinsics(c, default.intrinsics),
         _scalar(c, "latency", default.latency, "ms", -1000.0, 1000.0),
         bool(c.flag("trigger", default.trigger)),
+        _scalar(c, "clock_sync", default.clock_sync, "ms", -1000.0, 1000.0),
     )
 
 
@@ -378,6 +392,27 @@ def _workpiece(r: _Reader, default: WorkpieceSpec) -> WorkpieceSpec:
     return WorkpieceSpec(_pose(w, "frame", default.frame), model)
 
 
+def _covariance(r: _Reader, default: JointCovariance | None) -> JointCovariance | None:
+    """The joint block; its agreement with the blocks it names is checked on the whole rig."""
+    if not r.has("covariance"):
+        return default
+    c = r.sub("covariance", ("names", "matrix", "provenance"))
+    names = c.table.get("names")
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        c.fail("names", "expected a list of block names")
+        return default
+    if not names or any(n not in COVARIANCE_BLOCKS for n in names):
+        c.fail("names", f"name known blocks ({', '.join(COVARIANCE_BLOCKS)})")
+        return default
+    size = sum(COVARIANCE_BLOCKS[n] for n in names)
+    matrix = c.matrix("matrix", size, None)
+    if matrix is None:
+        if not c.has("matrix"):
+            c.fail("matrix", f"required ({size}×{size} over the named blocks)")
+        return default
+    return JointCovariance(tuple(names), matrix, _provenance(c))
+
+
 _SECTIONS: dict[str, Callable[[_Reader, RigSpec], Any]] = {
     "track": lambda r, d: _track(r, d.track),
     "hall": lambda r, d: _hall(r) if r.has("hall") else d.hall,
@@ -385,6 +420,7 @@ _SECTIONS: dict[str, Callable[[_Reader, RigSpec], Any]] = {
     "rangefinder": lambda r, d: _rangefinder(r, d.rangefinder),
     "camera": lambda r, d: _camera(r, d.camera),
     "workpiece": lambda r, d: _workpiece(r, d.workpiece),
+    "covariance": lambda r, d: _covariance(r, d.covariance),
 }
 
 
@@ -398,6 +434,7 @@ def rig_from_dict(table: Mapping[str, Any], base: RigSpec | None = None) -> RigS
         r.fail("format", f"this Orbitar reads rig format {FORMAT_VERSION}")
     parts = {name: read(r, default) for name, read in _SECTIONS.items()}
     spec = RigSpec(name=r.text("name", default.name), **parts)
+    problems += joint_problems(spec)
     if problems:
         raise RigError(problems)
     return spec
@@ -440,6 +477,7 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
             "provenance": _prov_dict(t.marks.provenance),
         },
     }
+    track["arc_radius_sigma_mm"] = t.arc_radius_sigma_mm
     for key in ("closed", "travel_min_mm", "travel_max_mm"):
         if getattr(t, key) is not None:
             track[key] = getattr(t, key)
@@ -450,7 +488,7 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
     if intr.covariance is not None:
         intrinsics["covariance"] = [list(row) for row in intr.covariance]
     intrinsics["provenance"] = _prov_dict(intr.provenance)
-    return {
+    out: dict[str, Any] = {
         "format": FORMAT_VERSION,
         "name": spec.name,
         "track": track,
@@ -463,6 +501,7 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
             "pan_max_deg": _deg(head.pan_max_rad),
             "tilt_min_deg": _deg(head.tilt_min_rad),
             "tilt_max_deg": _deg(head.tilt_max_rad),
+            "angle_noise": _scalar_dict(head.angle_noise, "rad"),
             "m_cr": _pose_dict(head.m_cr),
         },
         "rangefinder": {
@@ -478,9 +517,17 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
             "trigger": cam.trigger,
             "intrinsics": intrinsics,
             "latency": _scalar_dict(cam.latency, "ms"),
+            "clock_sync": _scalar_dict(cam.clock_sync, "ms"),
         },
         "workpiece": {"model": spec.workpiece.model, "frame": _pose_dict(spec.workpiece.frame)},
     }
+    if spec.covariance is not None:
+        out["covariance"] = {
+            "names": list(spec.covariance.names),
+            "matrix": spec.covariance.matrix.tolist(),
+            "provenance": _prov_dict(spec.covariance.provenance),
+        }
+    return out
 
 
 def _deg(angle_rad: float) -> float:

@@ -23,6 +23,27 @@ from host.geometry.head import M_CR_DEFAULT
 from host.geometry.track import RUNWAY_HEIGHT_MM, runway, runway_segments
 from host.geometry.transforms import FloatArray
 
+# The schema's public names: host.rig re-exports exactly these (one table, not two).
+__all__ = [
+    "COVARIANCE_BLOCKS",
+    "INTRINSIC_KEYS",
+    "CameraSpec",
+    "HallSpec",
+    "HeadSpec",
+    "Intrinsics",
+    "JointCovariance",
+    "Marks",
+    "Pose6",
+    "Provenance",
+    "RangefinderSpec",
+    "RigSpec",
+    "Scalar",
+    "Segment",
+    "SurfaceSpec",
+    "TrackSpec",
+    "WorkpieceSpec",
+]
+
 FORMAT_VERSION = 1
 INTRINSIC_KEYS = ("fx", "fy", "skew", "u0", "v0", "k1", "k2", "p1", "p2", "k3")
 SEGMENT_KINDS = ("straight", "arc")
@@ -45,6 +66,23 @@ NOMINAL_SIGMA_MOUNT_MM = (3.0, 3.0, 3.0)
 NOMINAL_SIGMA_PLACEMENT_RAD = (1e-3, 1e-3, 1e-3)
 NOMINAL_SIGMA_PLACEMENT_MM = (5.0, 5.0, 5.0)
 SURVEY_SIGMA_MM = 1.0  # a tape/total-station survey of a mark, a switch or a wall
+NOMINAL_SIGMA_ARC_RADIUS_MM = 2.0  # how far a bent arc's radius is off the drawing
+# Head angle read noise from its datasheet: encoder resolution 1e-4 rad (uniform, /√12) and
+# 2e-5 rad read noise, in quadrature.
+HEAD_RESOLUTION_RAD = 1e-4
+HEAD_READ_NOISE_RAD = 2e-5
+HEAD_ANGLE_SIGMA_RAD = math.hypot(HEAD_RESOLUTION_RAD / math.sqrt(12.0), HEAD_READ_NOISE_RAD)
+# A frame stamp's clock-sync error until the daemon has measured its own (docs/RIG.md).
+CLOCK_SYNC_SIGMA_MS = 0.25
+# The blocks a joint covariance may cover, each with its number of parameters (in the order of
+# the block's own covariance: INTRINSIC_KEYS, or a transform's local (ω, t)).
+COVARIANCE_BLOCKS = {
+    "camera.intrinsics": 10,
+    "head.m_cr": 6,
+    "track.placement": 6,
+    "workpiece.frame": 6,
+    "rangefinder.mount": 6,
+}
 
 
 def utc_now() -> str:
@@ -124,6 +162,44 @@ class Pose6:
     __hash__ = None  # type: ignore[assignment]
 
 
+@dataclass(frozen=True, eq=False)
+class JointCovariance:
+    """The covariance of blocks solved together (e.g. intrinsics, M_cr and the track placement).
+
+    Each block keeps its own covariance; this holds them with the cross terms between them
+    (the blocks' diagonal parts equal their own covariances), over `names` in order, each name
+    a key of COVARIANCE_BLOCKS with its parameters in that block's own order.
+    """
+
+    names: tuple[str, ...]
+    matrix: FloatArray
+    provenance: Provenance = field(default_factory=Provenance)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "names", tuple(self.names))
+        object.__setattr__(self, "matrix", np.array(self.matrix, dtype=np.float64))
+
+    def slices(self) -> dict[str, slice]:
+        """Where each block sits in the matrix."""
+        out, at = {}, 0
+        for name in self.names:
+            n = COVARIANCE_BLOCKS[name]
+            out[name] = slice(at, at + n)
+            at += n
+        return out
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, JointCovariance):
+            return NotImplemented
+        return (
+            self.names == other.names
+            and np.array_equal(self.matrix, other.matrix)
+            and self.provenance == other.provenance
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+
 @dataclass(frozen=True)
 class Segment:
     """One piece of track (a drawing value): a straight of length_mm or an arc turning angle_rad."""
@@ -171,6 +247,9 @@ class TrackSpec:
     # the trolley round it once); None: 0 and the length of an open track.
     travel_min_mm: float | None = None
     travel_max_mm: float | None = None
+    # σ of the arcs' radii against the drawing, one error shared by all arcs (bent on one jig);
+    # no calibration measures it: it moves the track beyond the arcs away from the placement
+    arc_radius_sigma_mm: float = NOMINAL_SIGMA_ARC_RADIUS_MM
 
     @property
     def length_mm(self) -> float:
@@ -208,6 +287,12 @@ class HeadSpec:
     pan_max_rad: float = math.pi
     tilt_min_rad: float = -math.pi / 2
     tilt_max_rad: float = math.radians(30.0)
+    # read noise of each head angle (σ; value: a constant offset, 0)
+    angle_noise: Scalar = field(
+        default_factory=lambda: Scalar(
+            0.0, HEAD_ANGLE_SIGMA_RAD, Provenance(note="datasheet: resolution and read noise")
+        )
+    )
 
 
 @dataclass(frozen=True)
@@ -252,6 +337,11 @@ class CameraSpec:
     intrinsics: Intrinsics = field(default_factory=Intrinsics)
     latency: Scalar = field(default_factory=lambda: Scalar(0.0, 10.0))  # milliseconds
     trigger: bool = False  # hardware trigger: frames stamped at exposure, no delivery jitter
+    # a frame stamp's error from the link's clock sync (σ, ms): the daemon's measured one or
+    # a default; the trolley is that long × its speed away from where the pose puts it
+    clock_sync: Scalar = field(
+        default_factory=lambda: Scalar(0.0, CLOCK_SYNC_SIGMA_MS, Provenance(note="default"))
+    )
 
 
 @dataclass(frozen=True)
@@ -301,3 +391,4 @@ class RigSpec:
     rangefinder: RangefinderSpec = field(default_factory=RangefinderSpec)
     camera: CameraSpec = field(default_factory=CameraSpec)
     workpiece: WorkpieceSpec = field(default_factory=WorkpieceSpec)
+    covariance: JointCovariance | None = None  # cross terms of blocks solved together

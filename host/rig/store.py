@@ -32,6 +32,7 @@ UPDATABLE = (
     "camera.intrinsics",
     "camera.latency",
     "workpiece.frame",
+    "covariance",
 )
 
 
@@ -48,7 +49,14 @@ def save_rig(spec: RigSpec, path: str | Path, note: str = "") -> Path | None:
 
 
 def with_updates(spec: RigSpec, updates: Mapping[str, Any]) -> RigSpec:
-    """A copy of `spec` with calibrated blocks replaced, e.g. {"head.m_cr": Pose6(...)}."""
+    """A copy of `spec` with calibrated blocks replaced, e.g. {"head.m_cr": Pose6(...)}.
+
+    Replacing a block the joint `covariance` covers, without a new one, drops it: its cross
+    terms were of the old values.
+    """
+    joint = spec.covariance
+    if joint is not None and "covariance" not in updates and set(updates) & set(joint.names):
+        spec = dataclasses.replace(spec, covariance=None)
     for key, value in updates.items():
         if key not in UPDATABLE:
             raise RigError([f"{key}: not a calibrated block (known: {', '.join(UPDATABLE)})"])

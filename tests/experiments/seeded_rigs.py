@@ -1,0 +1,273 @@
+"""Seeded true rigs commissioned offline with the real solvers, for checking the error budget.
+
+Each seed draws a built rig (hil_sim.true_rig, the demo's tolerances) around the demo's rig
+description, places the demo's board under the track and surveys it (1 mm, 1 mrad), and then
+does what `calibrate intrinsics` and `calibrate head` do, without the daemon: the same plan
+(three stations, five image targets), views rendered through the true lens and kinematics by
+the synthetic camera and detected, `calibrate_with_rejection`, `calibrate_handeye` with the
+intrinsics' covariance, and the rig-file updates those runs write (`rig_update`,
+`head_rig_update`), read back through the TOML codec. The host's arc length is off by the home
+survey's error (the same in calibration and later); head angles read with the datasheet noise.
+
+`overlay_errors` is the truth's side: the overlay of the model's points as the commissioned rig
+draws them minus where the true rig shows them, at (s, pan, tilt) poses aimed by the host.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil_sim.camera import SyntheticCamera
+from hil_sim.true_rig import true_rig
+from host.calibration.board import BoardDetector
+from host.calibration.handeye import HandEyeView, adjoint, calibrate_handeye
+from host.calibration.intrinsics import calibrate_with_rejection
+from host.commissioning.head_run import HeadOutcome, head_rig_update
+from host.commissioning.intrinsics_run import Outcome, rig_update
+from host.commissioning.plan import IMAGE_TARGETS, board_plan
+from host.demo.commissioning_phase import (
+    BOARD,
+    BOARD_SURVEY_SIGMA_MM,
+    BOARD_SURVEY_SIGMA_RAD,
+    STATION_SPACING_MM,
+    place_board,
+)
+from host.demo.rigs import DemoRigs, paper_demo_rig
+from host.experiments.budget import inputs_from_rig, overlay_sigma, visible
+from host.geometry.transforms import FloatArray, R_to_rotvec, invert_T, make_T, rotvec_to_R
+from host.rig import (
+    Pose6,
+    Provenance,
+    RigSpec,
+    build_camera,
+    build_kinematics,
+    covariance_over,
+    dumps_rig,
+    loads_rig,
+    with_block,
+    with_updates,
+)
+
+WORKPIECE_SURVEY_RAD = 1e-3  # an independent total-station survey of the workpiece frame
+WORKPIECE_SURVEY_MM = 1.0
+
+
+@dataclass(frozen=True)
+class Commissioned:
+    """One seeded rig: the truth, the rig file commissioning wrote, and the host's s error."""
+
+    seed: int
+    truth: RigSpec
+    host: RigSpec
+    home_error_mm: float  # host s − true s
+    head_sigma_rad: float
+    T_w_b_true: FloatArray
+    T_w_b_surveyed: FloatArray
+
+
+def commission(
+    seed: int,
+    workpiece_surveyed: bool = True,
+    projected_noise_px: float | None = None,
+    head_noise_modelled: bool = True,
+) -> Commissioned:
+    """Draw the rig, calibrate intrinsics then head on rendered views, write the rig file.
+
+    `projected_noise_px`: instead of rendering and detecting, the board's corners projected
+    through the truth with independent Gaussian noise of that σ per axis (the solvers' own
+    noise model: separates what detection adds from what the covariances claim).
+    `head_noise_modelled` False: the hand-eye covariance without the head angles' share."""
+    nominal = paper_demo_rig()
+    truth = true_rig(nominal, seed)
+    rigs = DemoRigs(nominal, truth, nominal, True)
+    setup = place_board(rigs, seed)
+    rng = np.random.default_rng([seed, 0xB0D6E7])
+    home_err = float(rng.normal(0.0, nominal.track.home.sigma))
+    head_sig = nominal.head.angle_noise.sigma
+    host_rig, host_cam = build_kinematics(nominal), build_camera(nominal)
+    true_kin, true_cam = build_kinematics(truth), build_camera(truth)
+    s0 = setup.s_mm
+    stations = [s0 - STATION_SPACING_MM, s0, s0 + STATION_SPACING_MM]
+    centre = (setup.T_w_b_surveyed @ np.append(BOARD.centre_mm, 1.0))[:3]
+    lim = ((nominal.head.pan_min_rad, nominal.head.pan_max_rad),
+           (nominal.head.tilt_min_rad, nominal.head.tilt_max_rad))  # fmt: skip
+    plan = board_plan(host_rig, host_cam, centre, stations, IMAGE_TARGETS, lim)
+    sim = SyntheticCamera(true_cam, seed=seed)
+    det = BoardDetector(BOARD)
+    T_w_b = setup.placed.T_w_b
+    corners = np.asarray(setup.placed.board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+
+    def capture() -> list[HandEyeView]:
+        out = []
+        for v in plan:
+            # the host commands s as it knows it: the trolley stands home_err short of it
+            s_true = v.s_mm - home_err
+            T_c_b = invert_T(true_kin.T_w_c(s_true, v.pan_rad, v.tilt_rad)) @ T_w_b
+            if projected_noise_px is None:
+                found = det.detect(sim.render_board(T_c_b, setup.placed.board).image)
+                if found is None:
+                    continue
+                obj, img = found.object_points, found.image_points
+            else:
+                obj = corners
+                img, _ = true_cam.project_world(T_c_b, obj)
+                img = img + rng.normal(0.0, projected_noise_px, img.shape)
+            pan, tilt = (a + float(rng.normal(0.0, head_sig)) for a in (v.pan_rad, v.tilt_rad))
+            out.append(HandEyeView(v.s_mm, pan, tilt, obj, img))
+        return out
+
+    intr_views = capture()
+    res = calibrate_with_rejection(
+        [v.object_points for v in intr_views], [v.image_points for v in intr_views], true_cam.size
+    )
+    spec = with_updates(nominal, rig_update(Outcome(True, [], [], res, host_cam)))
+    cam_cov = np.array(spec.camera.intrinsics.covariance)
+    cov_b = np.diag([BOARD_SURVEY_SIGMA_RAD**2] * 3 + [BOARD_SURVEY_SIGMA_MM**2] * 3)
+    head = calibrate_handeye(
+        capture(), host_rig.track, res.camera, host_rig.T_t_r, setup.T_w_b_surveyed, cov_b,
+        cam_cov, head_sig if head_noise_modelled else 0.0,
+    )  # fmt: skip
+    spec = with_updates(spec, head_rig_update(HeadOutcome(True, [], [], head), True))
+    if workpiece_surveyed:
+        spec = with_updates(spec, {"workpiece.frame": surveyed_workpiece(truth, rng)})
+    else:  # the workpiece frame exact: the budget of the rig alone
+        spec = with_updates(spec, {"workpiece.frame": Pose6(truth.workpiece.frame.matrix)})
+    host = loads_rig(dumps_rig(spec))  # as the daemon reads it
+    return Commissioned(seed, truth, host, home_err, head_sig, T_w_b, setup.T_w_b_surveyed)
+
+
+def surveyed_workpiece(truth: RigSpec, rng: np.random.Generator) -> Pose6:
+    """The workpiece frame as an independent survey finds it (its σ in the block)."""
+    w = rng.normal(0.0, WORKPIECE_SURVEY_RAD, 3)
+    t = rng.normal(0.0, WORKPIECE_SURVEY_MM, 3)
+    T = truth.workpiece.frame.matrix @ invert_T(make_T(rotvec_to_R(w), t))
+    return Pose6(T, (WORKPIECE_SURVEY_RAD,) * 3, (WORKPIECE_SURVEY_MM,) * 3,
+                 provenance=Provenance.now("survey (total station)"))  # fmt: skip
+
+
+def observation_poses(
+    c: Commissioned, offsets_mm: Sequence[float], target_p: FloatArray
+) -> list[tuple[float, float, float]]:
+    """(s, pan, tilt) as the host knows them, aimed by the host at a workpiece point."""
+    rig = build_kinematics(c.host)
+    start = DemoRigs(c.host, c.truth, c.host, True).start_s_mm()
+    target_w = (c.host.workpiece.frame.matrix @ np.append(target_p, 1.0))[:3]
+    out = []
+    for off in offsets_mm:
+        s = start + off
+        pan, tilt = rig.aim(s, target_w)
+        out.append((s, pan, tilt))
+    return out
+
+
+def overlay_errors(
+    c: Commissioned, poses: Sequence[tuple[float, float, float]], points_p: FloatArray,
+    rng: np.random.Generator,
+) -> list[FloatArray]:  # fmt: skip
+    """Per pose, drawn − true pixel (N,2) of each point, NaN rows where either is off-image."""
+    host_kin, host_cam = build_kinematics(c.host), build_camera(c.host)
+    true_kin, true_cam = build_kinematics(c.truth), build_camera(c.truth)
+    T_w_p_host, T_w_p_true = c.host.workpiece.frame.matrix, c.truth.workpiece.frame.matrix
+    out = []
+    for s, pan, tilt in poses:
+        s_true = s - c.home_error_mm
+        read = (pan + rng.normal(0.0, c.head_sigma_rad), tilt + rng.normal(0.0, c.head_sigma_rad))
+        drawn, _ = host_cam.project_world(invert_T(host_kin.T_w_c(s, *read)) @ T_w_p_host, points_p)
+        true, _ = true_cam.project_world(
+            invert_T(true_kin.T_w_c(s_true, pan, tilt)) @ T_w_p_true, points_p
+        )
+        out.append(drawn - true)
+    return out
+
+
+def replace_workpiece(c: Commissioned, frame: Pose6) -> Commissioned:
+    """The same commissioned rig with another workpiece frame in its rig file."""
+    return dataclasses.replace(c, host=with_updates(c.host, {"workpiece.frame": frame}))
+
+
+def board_relative_workpiece(c: Commissioned, rng: np.random.Generator) -> Commissioned:
+    """The workpiece surveyed in the board's frame (the same survey set-up as the board's, σ
+    WORKPIECE_SURVEY_* relative to it): T_w_p = T_w_b (surveyed) · T_b_p, so the board survey's
+    error is in both the workpiece frame and the track placement the head run solved with it.
+    The rig file gets the frame and its cross terms with the placement (`with_block`)."""
+    T_b_p_true = invert_T(c.T_w_b_true) @ c.truth.workpiece.frame.matrix
+    w = rng.normal(0.0, WORKPIECE_SURVEY_RAD, 3)
+    t = rng.normal(0.0, WORKPIECE_SURVEY_MM, 3)
+    T_b_p = T_b_p_true @ invert_T(make_T(rotvec_to_R(w), t))
+    T_w_p = c.T_w_b_surveyed @ T_b_p
+    cov_b = np.diag([BOARD_SURVEY_SIGMA_RAD**2] * 3 + [BOARD_SURVEY_SIGMA_MM**2] * 3)
+    cov_rel = np.diag([WORKPIECE_SURVEY_RAD**2] * 3 + [WORKPIECE_SURVEY_MM**2] * 3)
+    # δp = Ad(T_p_b) δb + δrel; δtrack = Ad(T_k_b) δb + (the fit's own)
+    Ad_pb = adjoint(invert_T(T_b_p))
+    T_b_k = invert_T(c.T_w_b_surveyed) @ c.host.track.placement.matrix
+    Ad_kb = adjoint(invert_T(T_b_k))
+    prov = Provenance.now("survey (total station, in the board's frame)")
+    shared = {"track.placement": Ad_pb @ cov_b @ Ad_kb.T}
+    cov_p, joint = with_block(
+        c.host, "workpiece.frame", Ad_pb @ cov_b @ Ad_pb.T + cov_rel, prov, shared=shared
+    )
+    frame = Pose6(T_w_p, *_sigmas(cov_p), covariance=cov_p, provenance=prov)
+    spec = with_updates(c.host, {"workpiece.frame": frame, "covariance": joint})
+    return dataclasses.replace(c, host=loads_rig(dumps_rig(spec)))
+
+
+def _sigmas(
+    cov: FloatArray,
+) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    d = np.sqrt(np.diag(cov))
+    return (float(d[0]), float(d[1]), float(d[2])), (float(d[3]), float(d[4]), float(d[5]))
+
+
+def predicted_and_measured(
+    rigs: Sequence[Commissioned], offsets_mm: Sequence[float], points_p: FloatArray,
+    without_cross: bool = False,
+) -> tuple[FloatArray, FloatArray]:  # fmt: skip
+    """(rigs × poses) measured mean-square overlay error and the budget's variance, px², over
+    the points the budget sees in the image (NaN where fewer than 3); `without_cross`: the
+    budget of the same rig files with their `[covariance]` cross terms removed."""
+    meas = np.full((len(rigs), len(offsets_mm)), np.nan)
+    pred = np.full_like(meas, np.nan)
+    for i, c in enumerate(rigs):
+        poses = observation_poses(c, offsets_mm, points_p.mean(axis=0))
+        spec = dataclasses.replace(c.host, covariance=None) if without_cross else c.host
+        inputs = inputs_from_rig(spec)
+        rng = np.random.default_rng([c.seed, 7])
+        for j, pose in enumerate(poses):
+            pts = visible(inputs, *pose, points_p)
+            if len(pts) < 3:
+                continue
+            e = overlay_errors(c, [pose], pts, rng)[0]
+            meas[i, j] = float(np.mean(np.sum(e * e, axis=1)))
+            pred[i, j] = overlay_sigma(inputs, *pose, pts).sigma_px ** 2
+    return meas, pred
+
+
+JOINT = ("camera.intrinsics", "head.m_cr", "track.placement")
+
+
+def joint_nees(c: Commissioned, block_diagonal: bool = False) -> tuple[float, int]:
+    """(truth − est)ᵀ Σ⁻¹ (truth − est) of what the head run solved together, and its dof.
+
+    Its mean over rigs should be the dof if the joint covariance is right (the parameters the
+    fit holds fixed, zero variance, are left out). The home survey's error, which the placement
+    absorbs, is not in the placement's Σ (1 mm against its several mm)."""
+    e, t = c.host, c.truth
+    d_cam = np.subtract(t.camera.intrinsics.values, e.camera.intrinsics.values)
+    d_pose = [_local(e.head.m_cr.matrix, t.head.m_cr.matrix),
+              _local(e.track.placement.matrix, t.track.placement.matrix)]  # fmt: skip
+    d = np.concatenate([d_cam, *d_pose])
+    spec = dataclasses.replace(e, covariance=None) if block_diagonal else e
+    S = covariance_over(spec, JOINT)
+    keep = np.diag(S) > 0
+    S, d = S[np.ix_(keep, keep)], d[keep]
+    return float(d @ np.linalg.solve(S, d)), int(keep.sum())
+
+
+def _local(est: FloatArray, truth: FloatArray) -> FloatArray:
+    """δ with truth = est · exp(δ), (ω, t)."""
+    D = invert_T(est) @ truth
+    return np.concatenate([R_to_rotvec(D[:3, :3]), D[:3, 3]])
