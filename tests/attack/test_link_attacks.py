@@ -11,27 +11,21 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 from tests.attack.rig import Rig
+from tests.hil_rig import Rigs
 
 HOME_SPEED_UM_S = 150_000
 
 
 @pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
-    rig = Rig(tmp_path)
-    rig.start_sim()
-    try:
-        rig.start_daemon()
-        rig.wait_link_up()
-        yield rig
-    finally:
-        rig.stop()
+def rig(hil_rig: Rigs) -> Rig:
+    rig = hil_rig(Rig)
+    rig.start()
+    return rig
 
 
 def home(rig: Rig) -> None:
