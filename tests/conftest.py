@@ -59,24 +59,17 @@ def no_leftover_threads() -> Iterator[None]:
 # of this file where the tests package is not importable.
 @pytest.fixture
 def hil_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rigs]:
-    """Emulator + daemon rigs for one test, each in a short directory of its own (a Unix
-    socket's path has at most 107 bytes); their processes end with the test."""
-    from tests.hil_rig import Rigs
+    """Emulator + daemon rigs for one test; their processes end with it."""
+    from tests.hil_rig import rigs_in
 
-    rigs = Rigs(lambda: tmp_path_factory.mktemp("hil"))
-    try:
+    with rigs_in(tmp_path_factory) as rigs:
         yield rigs
-    finally:
-        rigs.stop()
 
 
 @pytest.fixture(scope="module")
 def hil_rig_module(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rigs]:
     """Emulator + daemon rigs shared by a module's tests."""
-    from tests.hil_rig import Rigs
+    from tests.hil_rig import rigs_in
 
-    rigs = Rigs(lambda: tmp_path_factory.mktemp("hil"))
-    try:
+    with rigs_in(tmp_path_factory) as rigs:
         yield rigs
-    finally:
-        rigs.stop()

@@ -6,8 +6,8 @@ daemon` reaches it through the serial link of DIR/orbitar.toml, with DIR/rig.tom
 file and DIR/ctl.sock as its control socket. Both are processes of ours, ended by pid.
 
 The fixtures `hil_rig` (one test) and `hil_rig_module` (shared by a module's tests), in
-tests/conftest.py, are `Rigs`: they hand out rigs, each in a directory of its own, and stop
-every process those started afterwards.
+tests/conftest.py, are `Rigs` (`rigs_in`): they hand out rigs, each in a directory of its own,
+and stop every process those started afterwards.
 """
 
 from __future__ import annotations
@@ -22,9 +22,9 @@ import struct
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, TypeVar, overload
+from typing import Any, Self, TypeVar, overload
 
 import msgpack
 
@@ -100,6 +100,15 @@ def recv_exactly(sock: socket.socket, n: int) -> bytes:
             raise ConnectionError(f"closed after {len(data)} of {n} bytes")
         data += chunk
     return data
+
+
+def request(socket_path: str, op: str, timeout_s: float = 10.0, **args: Any) -> dict[str, Any]:
+    """One request on a fresh blocking Unix connection; the whole reply."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(socket_path)
+        sock.sendall(frame({"id": 1, "op": op, "args": args}))
+        return read_reply(sock)
 
 
 class HilRig:
@@ -189,7 +198,7 @@ class HilRig:
         self.start_daemon(NOTIFY_SOCKET=str(notes.path), **env)
         return notes
 
-    def start(self) -> HilRig:
+    def start(self) -> Self:
         """Emulator, then daemon, until the controller link is up."""
         self.start_sim()
         self.start_daemon()
@@ -197,12 +206,8 @@ class HilRig:
         return self
 
     def request(self, op: str, timeout_s: float = 10.0, **args: Any) -> dict[str, Any]:
-        """One request on a fresh blocking Unix connection; the whole reply."""
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(timeout_s)
-            sock.connect(self.socket_path)
-            sock.sendall(frame({"id": 1, "op": op, "args": args}))
-            return read_reply(sock)
+        """One request to the daemon on a fresh blocking Unix connection; the whole reply."""
+        return request(self.socket_path, op, timeout_s, **args)
 
     def wait_link_up(self, timeout_s: float = START_TIMEOUT_S) -> dict[str, Any]:
         """`status` once the controller link is up."""
@@ -330,3 +335,14 @@ class Rigs:
         """End every process of every rig made here."""
         for rig in reversed(self._made):
             rig.stop()
+
+
+@contextlib.contextmanager
+def rigs_in(tmp_path_factory: Any) -> Iterator[Rigs]:
+    """Rigs in pytest's short temporary directories (a Unix socket's path has at most 107
+    bytes), their processes ended on leaving: the body of every rig fixture."""
+    rigs = Rigs(lambda: Path(tmp_path_factory.mktemp("hil")))
+    try:
+        yield rigs
+    finally:
+        rigs.stop()

@@ -1,8 +1,9 @@
 """Attacks on the real daemon's control socket that once succeeded (issue 14, tester's run).
 
-Each test starts the emulator and `orbitar daemon` as processes (tests.attack.rig), attacks over
-the Unix socket, then checks what the operator sees: the daemon is alive, `orbitar status` and
-`orbitar stop`/`estop` answer, the trolley did not move.
+The module starts the emulator and `orbitar daemon` as processes (tests.attack.rig) once; each
+test attacks over the Unix socket, then checks what the operator sees: the daemon is alive,
+`orbitar status` and `orbitar stop`/`estop` answer, the trolley did not move. Every attack
+closes its connections and clears what it latched, so the next one finds the daemon as new.
 """
 
 from __future__ import annotations
@@ -22,12 +23,19 @@ STALL_S = 1.0  # the attacked daemon's [control] stall_timeout_s
 CAP = 4  # its max_unix_connections, small so the attack is quick
 
 
-@pytest.fixture
-def rig(hil_rig: Rigs) -> Rig:
+@pytest.fixture(scope="module")
+def shared_rig(hil_rig_module: Rigs) -> Rig:
+    """One emulator and daemon for the module's attacks: each attack frees what it took."""
     control = f"stall_timeout_s = {STALL_S}\nmax_unix_connections = {CAP}\nclient_buffer_kb = 256"
-    rig = hil_rig(Rig, control=control, fps=100.0)  # events fill a stalled watcher sooner
-    rig.start()
-    return rig
+    rig = hil_rig_module(Rig, control=control, fps=100.0)  # events fill a stalled watcher sooner
+    return rig.start()
+
+
+@pytest.fixture
+def rig(shared_rig: Rig) -> Rig:
+    """The shared rig, as healthy as an attack must find it: daemon up, link up, no client."""
+    shared_rig.wait_link_up()
+    return shared_rig
 
 
 def occupy(rig: Rig, op: str, **args: Any) -> socket.socket:

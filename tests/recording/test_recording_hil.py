@@ -68,19 +68,22 @@ def recording_rig(rigs: Rigs, fps: float = FPS) -> HilRig:
 
 
 async def drive_and_listen(client: ControlClient) -> list[dict[str, Any]]:
-    """Home, then move while collecting the published poses."""
+    """Home, then move, collecting the poses published until the trolley rests again."""
     await client.request("param_set", param="HOME_SPEED_UM_S", value=HOME_SPEED_UM_S)
     await client.request("home")
     await wait_until_at(client, 0.0, 20.0, tol_mm=10.0)
     await client.request("subscribe", topics=["pose"])
     await client.request("move", position_mm=300.0, speed_mm_s=400.0)
-    poses = []
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
+    poses: list[dict[str, Any]] = []
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:  # until the move is over: READY after MOVING
         event = await client.next_event(timeout_s=5)
         if event["topic"] == "pose":
             poses.append(event["data"])
-    return poses
+            moved = any(p["state"] == "MOVING" for p in poses)
+            if moved and poses[-1]["state"] == "READY":
+                return poses
+    raise AssertionError(f"the move did not end; last pose {poses[-1:]}")
 
 
 def replay(rec: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
