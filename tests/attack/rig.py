@@ -36,3 +36,8 @@ class Rig(HilRig):
         """The trolley's true position now (the emulator's plant, not the host's view)."""
         value: float = json.loads((self.dir / "truth.json").read_text())["s_mm"]
         return value
+
+    def truth_zero_mm(self) -> float:
+        """Where on the track the controller's zero truly is (scoring a home survey)."""
+        value: float = json.loads((self.dir / "truth.json").read_text())["zero_mm"]
+        return value
