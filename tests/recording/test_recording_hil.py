@@ -101,6 +101,7 @@ async def test_replay_from_raw_bytes_gives_the_live_poses(
 ) -> None:
     rig = await asyncio.to_thread(recording_rig, hil_rig)
     daemon = rig.start_daemon()
+    await asyncio.to_thread(rig.wait_link_up)
     async with await connect(Path(rig.socket_path)) as client:
         shown = await wait_recording_state(client, "recording")
         assert Path(shown["file"]).exists()
