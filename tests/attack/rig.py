@@ -37,6 +37,11 @@ class Rig(HilRig):
         value: float = json.loads((self.dir / "truth.json").read_text())["s_mm"]
         return value
 
+    def truth(self) -> dict[str, float]:
+        """The emulator's last truth: s_mm, s_wrapped_mm, pan_rad, tilt_rad, zero_mm, time_s."""
+        value: dict[str, float] = json.loads((self.dir / "truth.json").read_text())
+        return value
+
     def truth_zero_mm(self) -> float:
         """Where on the track the controller's zero truly is (scoring a home survey)."""
         value: float = json.loads((self.dir / "truth.json").read_text())["zero_mm"]

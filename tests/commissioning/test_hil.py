@@ -37,18 +37,15 @@ FPS = 10.0
 class BoardCamera:
     """A FrameSource rendering the board at the plant's true pose (true rig, true lens)."""
 
-    def __init__(
-        self, world: SimWorld, rig: Rig, lens: CameraModel, board: PlacedBoard, seed: int,
-        fps: float = FPS,
-    ) -> None:  # fmt: skip
-        self.world, self.rig, self.board, self.fps = world, rig, board, fps
+    def __init__(self, world: SimWorld, rig: Rig, lens: CameraModel, board: PlacedBoard, seed: int):
+        self.world, self.rig, self.board = world, rig, board
         self.cam = SyntheticCamera(lens, seed=seed)
         self.clock = FrameClock(seed=seed)
         self._closed = threading.Event()
         self._index = 0
 
     def read(self) -> Frame | None:
-        if self._closed.wait(1.0 / self.fps):
+        if self._closed.wait(1.0 / FPS):
             return None
         truth = self.world.with_truth(lambda sim: sim.truth())
         exposure_ns = self.world.host_time_ns(truth.time_s)

@@ -32,12 +32,14 @@ READY_TIMEOUT_S = 40.0
 
 
 class DemoRig(Rig):
-    """The emulator simulating the demo's rig file with seeded tolerances, writing its truth."""
+    """The emulator simulating the rig file with seeded tolerances, writing its truth."""
+
+    seed = SEED
 
     def sim_args(self) -> list[str]:
         return [
             "--link", "pty", "--link-path", str(self.dir / "sim"), "--rig", str(self.rig_path),
-            "--tolerances", "--seed", str(SEED), "--truth", str(self.dir / "truth.json"),
+            "--tolerances", "--seed", str(self.seed), "--truth", str(self.dir / "truth.json"),
         ]  # fmt: skip
 
 
