@@ -1,4 +1,5 @@
-"""Test hygiene: no asyncio task or timer may outlive its test; thread checks on request."""
+"""Test hygiene (no asyncio task or timer may outlive its test; thread checks on request) and
+the HIL rig fixtures."""
 
 from __future__ import annotations
 
@@ -6,8 +7,12 @@ import asyncio
 import threading
 import time
 from collections.abc import AsyncIterator, Iterator
+from typing import TYPE_CHECKING
 
 import pytest
+
+if TYPE_CHECKING:
+    from tests.hil_rig import Rigs
 
 
 @pytest.fixture(autouse=True)
@@ -48,3 +53,23 @@ def no_leftover_threads() -> Iterator[None]:
         time.sleep(0.01)
     leftover = _foreign_threads(before)
     assert not leftover, f"test left threads running: {leftover}"
+
+
+# The HIL rig fixtures (tests/hil_rig.py), imported when used: tests/test_hygiene.py runs a copy
+# of this file where the tests package is not importable.
+@pytest.fixture
+def hil_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rigs]:
+    """Emulator + daemon rigs for one test; their processes end with it."""
+    from tests.hil_rig import rigs_in
+
+    with rigs_in(tmp_path_factory) as rigs:
+        yield rigs
+
+
+@pytest.fixture(scope="module")
+def hil_rig_module(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rigs]:
+    """Emulator + daemon rigs shared by a module's tests."""
+    from tests.hil_rig import rigs_in
+
+    with rigs_in(tmp_path_factory) as rigs:
+        yield rigs

@@ -1,12 +1,13 @@
 """The emulator with two additions for attack tests: its truth in a file, and injected frames.
 
 `python -m tests.attack.rogue_sim --link-path P --truth T [emulator options]` runs the same
-emulator as `python -m hil_sim` and writes the plant's true position to T every 50 ms, so a test
-can see whether the trolley moved without asking the host. Lines on stdin inject controller
-frames behind the firmware's back: `status N STATE FAULTS` sends N STATUS frames, `log N` N LOG
-frames, `encoder N [COUNT VELOCITY MCU_US]` N encoder samples, `head N PAN TILT` N head
-samples (µrad), as a misbehaving controller would; `mute S both|to_host|to_firmware` drops
-the link's bytes for S seconds, as a pulled cable does.
+emulator as `python -m hil_sim` and writes the plant's true position and head angles (and the
+true place of the controller's zero) to T every 50 ms, so a test can see whether the trolley
+moved without asking the host. Lines on stdin inject controller frames behind the firmware's
+back: `status N STATE FAULTS` sends N STATUS frames, `log N` N LOG frames, `encoder N [COUNT
+VELOCITY MCU_US]` N encoder samples, `head N PAN TILT` N head samples (µrad), as a misbehaving
+controller would; `mute S both|to_host|to_firmware` drops the link's bytes for S seconds, as a
+pulled cable does.
 """
 
 from __future__ import annotations
@@ -39,13 +40,17 @@ TRUTH_PERIOD_S = 0.05
 
 
 def write_truth(runner: RealtimeRunner, path: str, stop: threading.Event) -> None:
-    """The plant's true position, atomically replaced every TRUTH_PERIOD_S."""
+    """The plant's true position, atomically replaced every TRUTH_PERIOD_S; and where on the
+    track the controller's zero truly is (its position and the plant's at the same instant)."""
     while not stop.wait(TRUTH_PERIOD_S):
         with runner.lock:
             truth = runner.sim.truth()
+            zero_mm = truth.s_mm - runner.sim.firmware.position_um / 1000.0
         tmp = path + ".tmp"
         with open(tmp, "w") as f:
-            json.dump({"s_mm": truth.s_mm, "time_s": truth.time_s}, f)
+            pose = {"s_wrapped_mm": truth.s_wrapped_mm, "pan_rad": truth.pan_rad}
+            pose["tilt_rad"] = truth.tilt_rad
+            json.dump({"s_mm": truth.s_mm, "time_s": truth.time_s, "zero_mm": zero_mm, **pose}, f)
         os.replace(tmp, path)
 
 

@@ -1,50 +1,41 @@
 """Attacks on the real daemon's control socket that once succeeded (issue 14, tester's run).
 
-Each test starts the emulator and `orbitar daemon` as processes (tests.attack.rig), attacks over
-the Unix socket, then checks what the operator sees: the daemon is alive, `orbitar status` and
-`orbitar stop`/`estop` answer, the trolley did not move.
+The module starts the emulator and `orbitar daemon` as processes (tests.attack.rig) once; each
+test attacks over the Unix socket, then checks what the operator sees: the daemon is alive,
+`orbitar status` and `orbitar stop`/`estop` answer, the trolley did not move. Every attack
+closes its connections and clears what it latched, so the next one finds the daemon as new.
 """
 
 from __future__ import annotations
 
 import socket
 import struct
-import subprocess
-import sys
 import time
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import msgpack
 import pytest
 
-from tests.attack.rig import Rig, frame, read_reply
+from tests.attack.rig import Rig
+from tests.hil_rig import Rigs, frame, read_reply
 
 STALL_S = 1.0  # the attacked daemon's [control] stall_timeout_s
 CAP = 4  # its max_unix_connections, small so the attack is quick
 
 
-@pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
+@pytest.fixture(scope="module")
+def shared_rig(hil_rig_module: Rigs) -> Rig:
+    """One emulator and daemon for the module's attacks: each attack frees what it took."""
     control = f"stall_timeout_s = {STALL_S}\nmax_unix_connections = {CAP}\nclient_buffer_kb = 256"
-    rig = Rig(tmp_path, control=control, fps=100.0)  # events fill a stalled watcher sooner
-    rig.start_sim()
-    try:
-        rig.start_daemon()
-        rig.wait_link_up()
-        yield rig
-    finally:
-        rig.stop()
+    rig = hil_rig_module(Rig, control=control, fps=100.0)  # events fill a stalled watcher sooner
+    return rig.start()
 
 
-def cli(rig: Rig, *args: str) -> tuple[int, str]:
-    """`orbitar ARGS --socket …`: (exit code, stdout + stderr)."""
-    proc = subprocess.run(
-        [sys.executable, "-m", "host.cli", *args, "--socket", rig.socket_path],
-        capture_output=True, text=True, timeout=30,
-    )  # fmt: skip
-    return proc.returncode, proc.stdout + proc.stderr
+@pytest.fixture
+def rig(shared_rig: Rig) -> Rig:
+    """The shared rig, as healthy as an attack must find it: daemon up, link up, no client."""
+    shared_rig.wait_link_up()
+    return shared_rig
 
 
 def occupy(rig: Rig, op: str, **args: Any) -> socket.socket:
@@ -84,10 +75,10 @@ def test_estop_gets_in_while_idle_clients_fill_the_unix_socket(rig: Rig) -> None
     socks = [idle_client(rig) for _ in range(CAP)]
     try:
         for op in ("estop", "stop"):
-            code, out = cli(rig, op)
+            code, out = rig.cli(op)
             assert code == 0, out
             assert "acked: True" in out
-        code, out = cli(rig, "status")
+        code, out = rig.cli("status")
         assert code == 1, out
         assert "too_many_clients" in out  # said as it is, not "daemon not running?"
         assert "max_unix_connections" in out
@@ -96,7 +87,7 @@ def test_estop_gets_in_while_idle_clients_fill_the_unix_socket(rig: Rig) -> None
     finally:
         for sock in socks:
             sock.close()
-    code, out = cli(rig, "clear")
+    code, out = rig.cli("clear")
     assert code == 0, out
 
 
@@ -106,10 +97,10 @@ def test_watchers_that_stop_reading_are_cut_off(rig: Rig) -> None:
     socks = [watcher(rig) for _ in range(CAP)]
     try:
         deadline = time.monotonic() + 60.0
-        code, out = cli(rig, "status", "--json")
+        code, out = rig.cli("status", "--json")
         while code != 0 and time.monotonic() < deadline:
             time.sleep(1.0)
-            code, out = cli(rig, "status", "--json")
+            code, out = rig.cli("status", "--json")
         assert code == 0, out
         assert '"cut_off"' in out
         assert rig.alive()

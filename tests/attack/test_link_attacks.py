@@ -6,32 +6,27 @@ plant's true position shows what the trolley really did.
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
 
 from tests.attack.rig import Rig
+from tests.hil_rig import Rigs, request
 
 HOME_SPEED_UM_S = 150_000
 
 
 @pytest.fixture
-def rig(tmp_path: Path) -> Iterator[Rig]:
-    rig = Rig(tmp_path)
-    rig.start_sim()
-    try:
-        rig.start_daemon()
-        rig.wait_link_up()
-        yield rig
-    finally:
-        rig.stop()
+def rig(hil_rig: Rigs) -> Rig:
+    rig = hil_rig(Rig)
+    rig.start()
+    return rig
 
 
 def home(rig: Rig) -> None:
@@ -102,7 +97,18 @@ def test_a_second_daemon_on_the_same_device_cannot_take_the_link(rig: Rig) -> No
             stdout=subprocess.DEVNULL, stderr=log,
         )  # fmt: skip
     try:
-        time.sleep(4.0)
+        # Until the second daemon says its link failed (its status), or it took the link.
+        deadline = time.monotonic() + 20.0
+        second_status: dict[str, Any] = {}
+        while time.monotonic() < deadline and rig.request("link_stats")["result"]["handshakes"] < 2:
+            assert proc.poll() is None, (rig.dir / "second.log").read_text()
+            with contextlib.suppress(OSError):
+                second_status = request(str(rig.dir / "ctl2.sock"), "status", 2.0)["result"]
+                if second_status["service"]["link_error"]:
+                    break
+            time.sleep(0.1)
+        assert second_status["link_up"] is False, second_status
+        assert second_status["service"]["link_error"], second_status
         stats = rig.request("link_stats")["result"]
         assert stats["handshakes"] == 1, stats
         assert rig.request("param_get", param="MAX_SPEED_UM_S")["ok"]

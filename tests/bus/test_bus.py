@@ -7,7 +7,6 @@ import asyncio
 import contextlib
 import io
 import json
-import socket
 import time
 from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
@@ -23,15 +22,9 @@ from host.bus.session import zenoh_config
 from host.cli import build_parser
 from host.config_bus import BusConfig
 from host.control.api import PoseSample
+from tests.hil_rig import free_port
 
 WAIT_S = 5.0
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 nothing listens on right now."""
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
 
 
 async def wait_until(check: Callable[[], bool], timeout_s: float = WAIT_S) -> None:

@@ -5,12 +5,8 @@ query on the bus, and its liveliness token goes when the daemon stops."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import os
 import signal
-import socket
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,10 +17,10 @@ from host.bus.fleet import Fleet
 from host.bus.messages import key, unpack
 from host.bus.session import zenoh_config
 from host.outputs.opentrackio_packet import Reassembler, decode_segment
-from tests.bus.test_bus import free_port, wait_until
+from tests.bus.test_bus import wait_until
+from tests.hil_rig import Rigs, free_port
 from tests.outputs.test_opentrackio import VALIDATOR, rot
 from tests.service.test_daemon import connect
-from tests.service.test_daemon_hil import CONFIG, RIG, Notifications, start_sim
 
 EXTRA = """
 [bus]
@@ -56,26 +52,15 @@ async def next_sample(receiver: Datagrams) -> dict[str, Any]:
             return sample
 
 
-async def test_daemon_on_the_bus_and_as_opentrackio(tmp_path: Path) -> None:
+async def test_daemon_on_the_bus_and_as_opentrackio(hil_rig: Rigs) -> None:
     loop = asyncio.get_running_loop()
     udp, receiver = await loop.create_datagram_endpoint(Datagrams, local_addr=("127.0.0.1", 0))
     bus_port, otio_port = free_port(), udp.get_extra_info("sockname")[1]
-    config = tmp_path / "orbitar.toml"
-    text = CONFIG.format(dir=tmp_path) + EXTRA.format(bus_port=bus_port, otio_port=otio_port)
-    config.write_text(text)
-    (tmp_path / "rig.toml").write_text(RIG)  # CONFIG's [rig] path
-    sim = await start_sim(tmp_path)
-    notify = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    notify.bind(str(tmp_path / "notify.sock"))
-    notify.setblocking(False)
-    notes = Notifications(notify)
-    env = dict(os.environ)
-    env["NOTIFY_SOCKET"] = str(tmp_path / "notify.sock")
-    with open(tmp_path / "daemon.log", "wb") as log:
-        daemon = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "host.service", "daemon", "--config", str(config),
-            env=env, stderr=log,
-        )  # fmt: skip
+    rig = hil_rig(sections=EXTRA.format(bus_port=bus_port, otio_port=otio_port))
+    await asyncio.to_thread(rig.start_sim)
+    notes = await rig.start_daemon_notified()
+    daemon = rig.daemon
+    assert daemon is not None
     peer = zenoh.open(zenoh_config("peer", [], [f"tcp/127.0.0.1:{bus_port}"], False))
     fleet = Fleet(peer)
     try:
@@ -86,7 +71,7 @@ async def test_daemon_on_the_bus_and_as_opentrackio(tmp_path: Path) -> None:
         sub = peer.declare_subscriber(
             key("hall-rig-7", "pose"), lambda s: bus_poses.append(unpack(s.payload.to_bytes()))
         )
-        async with await connect(tmp_path / "ctl.sock") as client:
+        async with await connect(Path(rig.socket_path)) as client:
             await client.request("subscribe", topics=["pose"])
             event = (await client.next_event(timeout_s=10))["data"]
             await wait_until(
@@ -118,16 +103,10 @@ async def test_daemon_on_the_bus_and_as_opentrackio(tmp_path: Path) -> None:
         np.testing.assert_allclose(R, np.column_stack([T[:3, 0], T[:3, 2], -T[:3, 1]]), atol=1e-3)
         assert abs(got["translation"]["z"] - 4.0) < 0.2  # the runway is 4 m up
         daemon.send_signal(signal.SIGTERM)
-        assert await asyncio.wait_for(daemon.wait(), 3.0) == 0
+        assert await rig.daemon_exit(3.0) == 0
         await wait_until(lambda: fleet.rows()[0]["alive"] is False)
-    finally:
+    finally:  # the processes end with hil_rig
         fleet.close()
         peer.close()
-        if daemon.returncode is None:
-            daemon.kill()
-        await daemon.wait()
         await notes.close()
         udp.close()
-        with contextlib.suppress(ProcessLookupError):
-            sim.send_signal(signal.SIGTERM)
-        await asyncio.wait_for(sim.communicate(), 10.0)

@@ -13,9 +13,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
 import signal
-import sys
 import time
 from pathlib import Path
 from typing import Any
@@ -26,30 +24,14 @@ import pytest
 from host.control.client import ControlClient
 from host.recording import RecordingReader
 from host.service.replay_registration import run as replay_run
+from tests.hil_rig import HilRig, Rigs
 from tests.service.test_daemon import connect
-from tests.service.test_daemon_hil import start_sim, wait_until_at
+from tests.service.test_daemon_hil import wait_until_at
 
-RIG = (
-    "[track.home]\nvalue_mm = 150.0\n[track.marks]\ns_mm = [250.0, 400.0]\n[camera]\nfps = {fps}\n"
-)
-CONFIG = """
-[link]
-kind = "serial"
-url = "{dir}/sim"
-baud = 115200
-heartbeat_ms = 100
-[rig]
-path = "{dir}/rig.toml"
-[camera]
-source = "none"
-[control]
-socket_path = "{dir}/ctl.sock"
+RECORDING = """
 [recording]
 enabled = true
 dir = "{dir}/{rec}"
-[systemd]
-ready_grace_s = 30.0
-status_interval_s = 0.5
 """
 HOME_SPEED_UM_S = 150_000
 FPS = 20.0  # poses published per second without a camera
@@ -76,47 +58,32 @@ async def wait_recording_state(client: ControlClient, state: str) -> dict[str, A
         await asyncio.sleep(0.1)
 
 
-async def start_daemon(tmp_path: Path, fps: float = FPS) -> asyncio.subprocess.Process:
-    """The daemon on the emulator's pty, recording into tmp/rec, publishing fps poses a second."""
-    config = tmp_path / "orbitar.toml"
-    config.write_text(CONFIG.format(dir=tmp_path, rec="rec"))
-    (tmp_path / "rig.toml").write_text(RIG.format(fps=fps))  # the rate is the rig file's
-    env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
-    env.pop("ORBITAR_FAKE_CONTROLLER", None)
-    env.pop("NOTIFY_SOCKET", None)
-    with open(tmp_path / "daemon.log", "wb") as log:
-        return await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "host.service", "daemon", "--config", str(config),
-            env=env, stderr=log,
-        )  # fmt: skip
+def recording_rig(rigs: Rigs, fps: float = FPS) -> HilRig:
+    """A rig whose daemon records into dir/rec and publishes `fps` poses a second (the rig
+    file's rate); its emulator started, its daemon not yet."""
+    rig = rigs(fps=fps)
+    rig.write_config(sections=RECORDING.format(dir=rig.dir, rec="rec"))
+    rig.start_sim()
+    return rig
 
 
 async def drive_and_listen(client: ControlClient) -> list[dict[str, Any]]:
-    """Home, then move while collecting the published poses."""
+    """Home, then move, collecting the poses published until the trolley rests again."""
     await client.request("param_set", param="HOME_SPEED_UM_S", value=HOME_SPEED_UM_S)
     await client.request("home")
     await wait_until_at(client, 0.0, 20.0, tol_mm=10.0)
     await client.request("subscribe", topics=["pose"])
     await client.request("move", position_mm=300.0, speed_mm_s=400.0)
-    poses = []
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
+    poses: list[dict[str, Any]] = []
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:  # until the move is over: READY after MOVING
         event = await client.next_event(timeout_s=5)
         if event["topic"] == "pose":
             poses.append(event["data"])
-    return poses
-
-
-async def end_processes(
-    daemon: asyncio.subprocess.Process, sim: asyncio.subprocess.Process
-) -> None:
-    """Make sure the daemon and the emulator of a test are gone."""
-    if daemon.returncode is None:
-        daemon.kill()
-        await daemon.wait()
-    if sim.returncode is None:
-        sim.send_signal(signal.SIGTERM)
-    await asyncio.wait_for(sim.communicate(), 10.0)
+            moved = any(p["state"] == "MOVING" for p in poses)
+            if moved and poses[-1]["state"] == "READY":
+                return poses
+    raise AssertionError(f"the move did not end; last pose {poses[-1:]}")
 
 
 def replay(rec: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
@@ -130,41 +97,37 @@ def replay(rec: Path, out: Path, capsys: pytest.CaptureFixture[str]) -> dict[str
 
 
 async def test_replay_from_raw_bytes_gives_the_live_poses(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    hil_rig: Rigs, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    sim = await start_sim(tmp_path)
-    daemon = await start_daemon(tmp_path)
-    try:
-        async with await connect(tmp_path / "ctl.sock") as client:
-            shown = await wait_recording_state(client, "recording")
-            assert Path(shown["file"]).exists()
-            live = await drive_and_listen(client)
-            shown = await recording_status(client)
-            assert shown["bytes"] > 10_000
-            assert shown["dropped"] == 0
-            (tmp_path / "disk").write_text("a plain file where a directory should be")
-            config = tmp_path / "orbitar.toml"
-            config.write_text(CONFIG.format(dir=tmp_path, rec="disk/rec"))
-            (tmp_path / "rig.toml").write_text(RIG.format(fps=FPS))
-            daemon.send_signal(signal.SIGHUP)
-            blocked = await wait_recording_state(client, "retrying")
-            assert "ENOTDIR" in blocked["last_error"] or "EEXIST" in blocked["last_error"]
-            assert blocked["file"] is None  # no file named that does not exist
-            (tmp_path / "disk").unlink()  # the disk is usable again: no restart needed
-            shown = await wait_recording_state(client, "recording")
-            assert Path(shown["file"]).exists()
-            await client.request("move", position_mm=100.0, speed_mm_s=400.0)
-            await wait_until_at(client, 100.0, 10.0)
-        daemon.send_signal(signal.SIGTERM)
-        assert await asyncio.wait_for(daemon.wait(), 5.0) == 0
-    finally:
-        await end_processes(daemon, sim)
-    header = next(iter(RecordingReader([tmp_path / "rec"], strict=True))).data
+    rig = await asyncio.to_thread(recording_rig, hil_rig)
+    daemon = rig.start_daemon()
+    await asyncio.to_thread(rig.wait_link_up)
+    async with await connect(Path(rig.socket_path)) as client:
+        shown = await wait_recording_state(client, "recording")
+        assert Path(shown["file"]).exists()
+        live = await drive_and_listen(client)
+        shown = await recording_status(client)
+        assert shown["bytes"] > 10_000
+        assert shown["dropped"] == 0
+        (rig.dir / "disk").write_text("a plain file where a directory should be")
+        rig.write_config(sections=RECORDING.format(dir=rig.dir, rec="disk/rec"))
+        daemon.send_signal(signal.SIGHUP)
+        blocked = await wait_recording_state(client, "retrying")
+        assert "ENOTDIR" in blocked["last_error"] or "EEXIST" in blocked["last_error"]
+        assert blocked["file"] is None  # no file named that does not exist
+        (rig.dir / "disk").unlink()  # the disk is usable again: no restart needed
+        shown = await wait_recording_state(client, "recording")
+        assert Path(shown["file"]).exists()
+        await client.request("move", position_mm=100.0, speed_mm_s=400.0)
+        await wait_until_at(client, 100.0, 10.0)
+    daemon.send_signal(signal.SIGTERM)
+    assert await rig.daemon_exit(5.0) == 0
+    header = next(iter(RecordingReader([rig.dir / "rec"], strict=True))).data
     assert header["version"] == 2
     assert "[recording]" in header["config_toml"]
     assert header["calibration"]["intrinsics"]["fx"] > 0
     out = tmp_path / "replayed.jsonl"
-    summary = replay(tmp_path / "rec", out, capsys)
+    summary = replay(rig.dir / "rec", out, capsys)
     assert summary["source"] == "raw"
     assert int(summary["raw_samples"]) > 500
     assert float(summary["clock_delta_max_us"]) <= CLOCK_TOLERANCE_US
@@ -180,5 +143,5 @@ async def test_replay_from_raw_bytes_gives_the_live_poses(
         assert np.linalg.norm(delta) < POSE_TOLERANCE_MM
         assert again["s_mm"] == pytest.approx(pose["s_mm"], abs=POSE_TOLERANCE_MM)
     # The file begun after the reload has no IDENTIFY: the header's identity converts it.
-    late = replay(tmp_path / "disk" / "rec", tmp_path / "late.jsonl", capsys)
+    late = replay(rig.dir / "disk" / "rec", tmp_path / "late.jsonl", capsys)
     assert int(late["raw_samples"]) > 100

@@ -8,15 +8,11 @@ fixed rate. The operator's CLI (`orbitar status/home/move`) drives the simulated
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import json
-import os
 import signal
-import socket
 import sys
 import time
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,96 +20,20 @@ import pytest
 
 from host.config import Config
 from host.control.client import ControlClient
+from tests.hil_rig import HOME_S_MM, HilRig, Notifications, Rigs, daemon_config, rig_toml
 from tests.service.test_daemon import connect
 
-CONFIG = """
-[link]
-kind = "serial"
-url = "{dir}/sim"
-baud = 115200
-heartbeat_ms = 100
-[rig]
-path = "{dir}/rig.toml"
-[camera]
-source = "none"
-[control]
-socket_path = "{dir}/ctl.sock"
-[systemd]
-ready_grace_s = 30.0
-status_interval_s = 0.5
-"""
-RIG = """
-[track.home]
-value_mm = 150.0
-[track.marks]
-s_mm = [250.0, 400.0]
-[camera]
-fps = 20.0
-"""
 WATCHDOG_USEC = "400000"
 HOME_SPEED_UM_S = 150_000  # the default 50 mm/s would spend ~8 s of the test homing
 POSITION_TOLERANCE_MM = 3.0
-HOME_S_MM = 150.0  # the emulator's home switch; its zero is at the next index, a survey away
 
 
-class Notifications:
-    """Drains our NOTIFY_SOCKET in the background (its queue holds only ~10 datagrams)."""
-
-    def __init__(self, sock: socket.socket) -> None:
-        self.sock = sock
-        self.got: list[str] = []
-        self._task = asyncio.create_task(self._drain())
-
-    async def _drain(self) -> None:
-        loop = asyncio.get_running_loop()
-        while True:
-            self.got.append((await loop.sock_recv(self.sock, 4096)).decode())
-
-    async def wait_for(self, needle: str, timeout_s: float) -> str:
-        """The first notification containing `needle`."""
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            for text in self.got:
-                if needle in text:
-                    return text
-            await asyncio.sleep(0.02)
-        raise TimeoutError(f"{needle} not in {self.got[-5:]}")
-
-    async def close(self) -> None:
-        """Stop draining and close the socket."""
-        self._task.cancel()
-        with contextlib.suppress(asyncio.CancelledError):
-            await self._task
-        self.sock.close()
+async def cli(rig: HilRig, *args: str) -> tuple[int, str]:
+    """`orbitar ARGS --socket …` as an operator types it, off the event loop."""
+    return await asyncio.to_thread(rig.cli, *args, timeout_s=20.0)
 
 
-@dataclass
-class Rig:
-    """The emulator, the daemon and the notify socket of one test."""
-
-    sim: asyncio.subprocess.Process
-    daemon: asyncio.subprocess.Process
-    notes: Notifications
-    dir: Path
-
-    @property
-    def socket(self) -> str:
-        """The daemon's control socket."""
-        return str(self.dir / "ctl.sock")
-
-
-async def cli(rig: Rig, *args: str) -> tuple[int, str]:
-    """`orbitar ARGS --socket …` as an operator types it; (exit code, stdout + stderr)."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "host.cli", *args, "--socket", rig.socket,
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT,
-    )  # fmt: skip
-    out, _ = await asyncio.wait_for(proc.communicate(), 20.0)
-    assert proc.returncode is not None
-    return proc.returncode, out.decode()
-
-
-async def status(rig: Rig) -> dict[str, Any]:
+async def status(rig: HilRig) -> dict[str, Any]:
     """`orbitar status --json`, parsed."""
     code, out = await cli(rig, "status", "--json")
     assert code == 0, out
@@ -137,66 +57,25 @@ async def wait_until_at(
     raise AssertionError(f"not at {target_mm} mm: {last}")
 
 
-async def start_sim(tmp_path: Path) -> asyncio.subprocess.Process:
-    """The emulator behind a pty at tmp/sim, once it says it is ready."""
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "hil_sim", "--link", "pty", "--link-path", str(tmp_path / "sim"),
-        "--marks", "250,400",
-        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
-    )  # fmt: skip
-    assert proc.stdout is not None
-    while b"press Ctrl-C" not in await asyncio.wait_for(proc.stdout.readline(), 20.0):
-        assert proc.returncode is None
-    return proc
-
-
-async def start_daemon(tmp_path: Path) -> tuple[asyncio.subprocess.Process, Notifications]:
-    """The daemon with the real link, a notify socket of ours and a watchdog period."""
-    config = tmp_path / "orbitar.toml"
-    config.write_text(CONFIG.format(dir=tmp_path))
-    (tmp_path / "rig.toml").write_text(RIG)
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-    sock.bind(str(tmp_path / "notify.sock"))
-    sock.setblocking(False)
-    env = {k: v for k, v in os.environ.items() if k not in ("JOURNAL_STREAM", "INVOCATION_ID")}
-    env.update(NOTIFY_SOCKET=str(tmp_path / "notify.sock"), WATCHDOG_USEC=WATCHDOG_USEC)
-    with open(tmp_path / "daemon.log", "wb") as log:
-        proc = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "host.service", "daemon", "--config", str(config),
-            env=env, stderr=log,
-        )  # fmt: skip
-    return proc, Notifications(sock)
-
-
-async def _end(proc: asyncio.subprocess.Process) -> None:
-    """Make sure a process of ours is gone."""
-    if proc.returncode is None:
-        proc.kill()
-    await proc.communicate()
-
-
 @pytest.fixture
-async def rig(tmp_path: Path) -> AsyncIterator[Rig]:
-    sim = await start_sim(tmp_path)
+async def notified_rig(hil_rig: Rigs) -> AsyncIterator[tuple[HilRig, Notifications]]:
+    """Emulator, then daemon (its processes end with hil_rig)."""
+    rig = hil_rig()
+    await asyncio.to_thread(rig.start_sim)
+    notes = await rig.start_daemon_notified(WATCHDOG_USEC=WATCHDOG_USEC)
     try:
-        daemon, notes = await start_daemon(tmp_path)
-    except BaseException:
-        await _end(sim)
-        raise
-    try:
-        yield Rig(sim, daemon, notes, tmp_path)
+        yield rig, notes
     finally:
-        await _end(daemon)
         await notes.close()
-        if sim.returncode is None:
-            sim.send_signal(signal.SIGTERM)
-        await asyncio.wait_for(sim.communicate(), 10.0)
 
 
-async def test_daemon_drives_the_emulated_trolley(rig: Rig) -> None:
-    ready = await rig.notes.wait_for("READY=1", 20.0)
+async def test_daemon_drives_the_emulated_trolley(
+    notified_rig: tuple[HilRig, Notifications],
+) -> None:
+    rig, notes = notified_rig
+    ready = await notes.wait_for("READY=1", 20.0)
     assert "controller link up" in ready
-    assert await rig.notes.wait_for("WATCHDOG=1", 2.0)
+    assert await notes.wait_for("WATCHDOG=1", 2.0)
     first = await status(rig)
     for _ in range(50):  # the link is up at the handshake; the first STATUS follows it
         if first["controller"]["state"] != "UNKNOWN":
@@ -206,7 +85,7 @@ async def test_daemon_drives_the_emulated_trolley(rig: Rig) -> None:
     assert first["link_up"] is True
     assert first["controller"]["link"] == "up"
     assert first["controller"]["state"] in ("IDLE", "READY")
-    async with await connect(rig.dir / "ctl.sock") as client:
+    async with await connect(Path(rig.socket_path)) as client:
         await client.request("param_set", param="HOME_SPEED_UM_S", value=HOME_SPEED_UM_S)
         code, out = await cli(rig, "home")
         assert code == 0, out
@@ -231,44 +110,44 @@ async def test_daemon_drives_the_emulated_trolley(rig: Rig) -> None:
     shown = await status(rig)
     assert abs(shown["controller"]["position_mm"] - 300.0) < POSITION_TOLERANCE_MM
     assert shown["service"]["fps"] > 10.0  # poses published without a camera
-    pings = sum(text == "WATCHDOG=1" for text in rig.notes.got)
+    pings = sum(text == "WATCHDOG=1" for text in notes.got)
     assert pings >= 10  # every 0.2 s (half of WATCHDOG_USEC) for the whole run
+    assert rig.daemon is not None
     rig.daemon.send_signal(signal.SIGTERM)
-    assert await asyncio.wait_for(rig.daemon.wait(), 2.0) == 0
-    await rig.notes.wait_for("STOPPING=1", 1.0)
-    log = (rig.dir / "daemon.log").read_text()
+    assert await rig.daemon_exit(2.0) == 0
+    await notes.wait_for("STOPPING=1", 1.0)
+    log = rig.log_tail(10**9)
     assert "controlled stop acknowledged" in log
     assert not (rig.dir / "ctl.sock").exists()
 
 
-async def test_daemon_waits_for_a_missing_controller_then_connects(tmp_path: Path) -> None:
-    daemon, notes = await start_daemon(tmp_path)  # no emulator yet: the pty does not exist
-    sim: asyncio.subprocess.Process | None = None
+async def test_daemon_waits_for_a_missing_controller_then_connects(hil_rig: Rigs) -> None:
+    rig = hil_rig()
+    notes = await rig.start_daemon_notified(WATCHDOG_USEC=WATCHDOG_USEC)  # no emulator, no pty yet
     try:
-        client = await connect(tmp_path / "ctl.sock")
+        client = await connect(Path(rig.socket_path))
         async with client:
             early = await client.request("status")
             assert early["link_up"] is False
             assert early["service"]["link_error"]
-            sim = await start_sim(tmp_path)
+            await asyncio.to_thread(rig.start_sim)
             ready = await notes.wait_for("READY=1", 20.0)
             assert "controller link up" in ready
             assert (await client.request("status"))["link_up"] is True
-        daemon.send_signal(signal.SIGTERM)
-        assert await asyncio.wait_for(daemon.wait(), 2.0) == 0
+        assert rig.daemon is not None
+        rig.daemon.send_signal(signal.SIGTERM)
+        assert await rig.daemon_exit(2.0) == 0
     finally:
-        await _end(daemon)
         await notes.close()
-        if sim is not None:
-            sim.send_signal(signal.SIGTERM)
-            await asyncio.wait_for(sim.communicate(), 10.0)
 
 
 async def test_bad_model_path_is_a_clear_exit_2(tmp_path: Path) -> None:
     config = tmp_path / "orbitar.toml"
-    text = CONFIG.format(dir=tmp_path).replace('source = "none"', f'source = "{tmp_path}/x.avi"')
+    text = daemon_config(tmp_path).replace('source = "none"', f'source = "{tmp_path}/x.avi"')
     config.write_text(text)
-    (tmp_path / "rig.toml").write_text(RIG + f'[workpiece]\nmodel = "{tmp_path}/missing.obj"\n')
+    (tmp_path / "rig.toml").write_text(
+        rig_toml() + f'[workpiece]\nmodel = "{tmp_path}/missing.obj"\n'
+    )
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "host.service", "daemon", "--config", str(config),
         stderr=asyncio.subprocess.PIPE,

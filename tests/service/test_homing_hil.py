@@ -23,9 +23,9 @@ from host.recording import RecordingReader
 from host.recording.writer import KIND_ENCODER
 from host.service.wiring import ENCODER_HORIZON_NS
 from protocol.enums import Inputs
-from tests.recording.test_recording_hil import HOME_SPEED_UM_S, end_processes, start_daemon
+from tests.hil_rig import HOME_S_MM, Rigs
+from tests.recording.test_recording_hil import HOME_SPEED_UM_S, recording_rig
 from tests.service.test_daemon import connect
-from tests.service.test_daemon_hil import HOME_S_MM, start_sim
 
 # A pose at 200 Hz (one per encoder sample) meets the instant after the latch on every run.
 POSE_RATE_HZ = 200.0
@@ -97,17 +97,14 @@ async def poses_while_homing_and_moving(client: ControlClient) -> list[dict[str,
     raise AssertionError(f"homing and the move did not end; last pose {poses[-1:]}")
 
 
-async def test_no_pose_bridges_the_homing_latch(tmp_path: Path) -> None:
-    sim = await start_sim(tmp_path)
-    daemon = await start_daemon(tmp_path, fps=POSE_RATE_HZ)
-    try:
-        async with await connect(tmp_path / "ctl.sock") as client:
-            poses = await poses_while_homing_and_moving(client)
-        daemon.send_signal(signal.SIGTERM)
-        assert await asyncio.wait_for(daemon.wait(), 5.0) == 0
-    finally:
-        await end_processes(daemon, sim)
-    recorded = Recorded.read(tmp_path / "rec")
+async def test_no_pose_bridges_the_homing_latch(hil_rig: Rigs) -> None:
+    rig = await asyncio.to_thread(recording_rig, hil_rig, POSE_RATE_HZ)
+    daemon = rig.start_daemon()
+    async with await connect(Path(rig.socket_path)) as client:
+        poses = await poses_while_homing_and_moving(client)
+    daemon.send_signal(signal.SIGTERM)
+    assert await rig.daemon_exit(5.0) == 0
+    recorded = Recorded.read(rig.dir / "rec")
     steps = np.diff(recorded.segment)
     assert steps.sum() == 1  # the emulator starts unhomed: the latch is the one change
     latch = int(np.flatnonzero(steps)[0]) + 1

@@ -1,28 +1,25 @@
 """The station under test: emulator and daemon as processes, and a headless Debian Chromium.
 
-The emulator and the daemon are started once per module (they need no event loop) and the
-browser once per test. Browser tests are skipped, saying why, only where no Chromium exists;
-`.ci/run` and scripts/setup-venv.sh install Debian's chromium when they can.
+The emulator and the daemon (tests.hil_rig) are started once per module (they need no event
+loop) and the browser once per test. Browser tests are skipped, saying why, only where no
+Chromium exists; `.ci/run` and scripts/setup-venv.sh install Debian's chromium when they can.
 """
 
 from __future__ import annotations
 
 import json
 import os
-import select
 import shutil
-import signal
-import socket
 import subprocess
-import sys
 import time
 import urllib.request
-from collections.abc import AsyncIterator, Iterator
-from dataclasses import dataclass, field
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+
+from tests.hil_rig import HilRig, Rigs, free_port
 
 CHROMIUM = os.environ.get("ORBITAR_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -36,7 +33,6 @@ CHROMIUM_ARGS = [
 ARTIFACTS = Path(__file__).with_name("artifacts")
 OPERATOR_TOKEN = "operator-secret-0001"
 VIEWER_TOKEN = "viewer-secret-00001"
-MARKS = "250,400"
 RIG = """
 [track.home]
 value_mm = 150.0
@@ -56,21 +52,7 @@ fy = 1400.0
 [workpiece.frame]
 matrix = [[1, 0, 0, -300.0], [0, 1, 0, -300.0], [0, 0, 1, 0], [0, 0, 0, 1]]
 """
-CONFIG = """
-[link]
-kind = "serial"
-url = "{dir}/sim"
-baud = 115200
-heartbeat_ms = 100
-[rig]
-path = "{dir}/rig.toml"
-[camera]
-source = "none"
-[control]
-socket_path = "{dir}/ctl.sock"
-[systemd]
-ready_grace_s = 30.0
-status_interval_s = 0.5
+UI = """
 [ui]
 enabled = true
 port = {port}
@@ -80,28 +62,18 @@ deadman_ms = 250.0
 """
 
 
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 nobody listens on now."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+class StationRig(HilRig):
+    """The shared HIL rig with the station on a free port; restartable daemon."""
 
-
-@dataclass
-class StationRig:
-    """Emulator + daemon with the station; restartable daemon."""
-
-    dir: Path
-    port: int
-    sim: subprocess.Popen[bytes]
-    daemon: subprocess.Popen[bytes] | None = None
-    logs: list[Path] = field(default_factory=list)
-    extra_config: str = ""  # more TOML for the daemon (e.g. a [bus] section)
+    def __init__(self, dir: Path, sections: str = "") -> None:
+        self.port = free_port()
+        ui = UI.format(port=self.port, operator=OPERATOR_TOKEN, viewer=VIEWER_TOKEN)
+        super().__init__(dir, rig=RIG, sections=ui + sections)
 
     @property
     def socket(self) -> str:
         """The daemon's control socket."""
-        return str(self.dir / "ctl.sock")
+        return self.socket_path
 
     @property
     def base(self) -> str:
@@ -112,85 +84,33 @@ class StationRig:
         """The page, with its token in the fragment (never sent to the server)."""
         return f"{self.base}/#token={token}"
 
-    def start_daemon(self) -> None:
+    def start_daemon(self, **env: str) -> subprocess.Popen[bytes]:
         """Start the daemon and wait until the station answers."""
-        config = self.dir / "orbitar.toml"
-        text = CONFIG.format(
-            dir=self.dir, port=self.port, operator=OPERATOR_TOKEN, viewer=VIEWER_TOKEN
-        )
-        config.write_text(text + self.extra_config)
-        (self.dir / "rig.toml").write_text(RIG)  # the rig file CONFIG's [rig] path names
-        env = {k: v for k, v in os.environ.items() if k not in ("NOTIFY_SOCKET", "WATCHDOG_USEC")}
-        log = self.dir / f"daemon-{len(self.logs)}.log"
-        self.logs.append(log)
-        with open(log, "wb") as out:
-            self.daemon = subprocess.Popen(
-                [sys.executable, "-m", "host.service", "daemon", "--config", str(config)],
-                env=env,
-                stderr=out,
-            )
+        daemon = super().start_daemon(**env)
         deadline = time.monotonic() + 20.0
         while time.monotonic() < deadline:
-            assert self.daemon.poll() is None, log.read_text()
+            assert daemon.poll() is None, self.log_tail()
             try:
                 with urllib.request.urlopen(self.base + "/", timeout=1.0) as reply:
                     if reply.status == 200:
-                        return
+                        return daemon
             except OSError:
                 time.sleep(0.1)
-        raise TimeoutError(f"station did not answer: {log.read_text()}")
-
-    def stop_daemon(self) -> None:
-        """SIGTERM the daemon and wait for its exit."""
-        if self.daemon is not None and self.daemon.poll() is None:
-            self.daemon.send_signal(signal.SIGTERM)
-            try:
-                self.daemon.wait(10.0)
-            except subprocess.TimeoutExpired:
-                self.daemon.kill()
-                self.daemon.wait()
-        self.daemon = None
+        raise TimeoutError(f"station did not answer: {self.log_tail()}")
 
 
-def _start_sim(directory: Path) -> subprocess.Popen[bytes]:
-    """The emulator behind a pty at dir/sim, once it says it is ready."""
-    link = str(directory / "sim")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hil_sim", "--link", "pty", "--link-path", link, "--marks", MARKS],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-    )
-    assert proc.stdout is not None
-    deadline = time.monotonic() + 20.0
-    seen = b""
-    while time.monotonic() < deadline:
-        ready, _, _ = select.select([proc.stdout], [], [], 0.5)
-        if ready:
-            seen += os.read(proc.stdout.fileno(), 4096)
-        if b"press Ctrl-C" in seen:
-            return proc
-        assert proc.poll() is None, "the emulator exited"
-    proc.kill()
-    raise TimeoutError("the emulator did not start")
+def start_station(rigs: Rigs, sections: str = "") -> StationRig:
+    """Emulator and daemon with the station (`sections`: more daemon TOML, e.g. `[bus]`)."""
+    rig = rigs(StationRig, sections=sections)
+    rig.start_sim()
+    rig.start_daemon()
+    return rig
 
 
 @pytest.fixture(scope="module")
-def station_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[StationRig]:
+def station_rig(hil_rig_module: Rigs) -> StationRig:
     """One emulator and one daemon (with the station) for a module's tests."""
-    directory = tmp_path_factory.mktemp("station")
-    sim = _start_sim(directory)
-    rig = StationRig(directory, free_port(), sim)
-    try:
-        rig.start_daemon()
-        yield rig
-    finally:
-        rig.stop_daemon()
-        sim.send_signal(signal.SIGTERM)
-        try:
-            sim.wait(10.0)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
+    return start_station(hil_rig_module)
 
 
 def browser_missing() -> str | None:

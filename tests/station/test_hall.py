@@ -5,16 +5,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import signal
-import subprocess
-from collections.abc import AsyncIterator, Iterator, Mapping
+from collections.abc import AsyncIterator, Mapping
 from typing import Any
 
 import pytest
 
 from host.bus.publisher import BusPublisher
 from host.config_bus import BusConfig
-from tests.station.conftest import ARTIFACTS, StationRig, _start_sim, free_port
+from tests.hil_rig import Rigs, free_port
+from tests.station.conftest import ARTIFACTS, StationRig, start_station
 
 BUS = """
 [bus]
@@ -26,23 +25,10 @@ stats_interval_s = 0.2
 
 
 @pytest.fixture(scope="module")
-def hall_rig(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[StationRig, int]]:
+def hall_rig(hil_rig_module: Rigs) -> tuple[StationRig, int]:
     """Emulator + daemon with the station and the bus."""
-    directory = tmp_path_factory.mktemp("hall")
     bus_port = free_port()
-    sim = _start_sim(directory)
-    rig = StationRig(directory, free_port(), sim, extra_config=BUS.format(port=bus_port))
-    try:
-        rig.start_daemon()
-        yield rig, bus_port
-    finally:
-        rig.stop_daemon()
-        sim.send_signal(signal.SIGTERM)
-        try:
-            sim.wait(10.0)
-        except subprocess.TimeoutExpired:
-            sim.kill()
-            sim.wait()
+    return start_station(hil_rig_module, BUS.format(port=bus_port)), bus_port
 
 
 @pytest.fixture

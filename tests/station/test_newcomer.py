@@ -10,7 +10,7 @@ import time
 
 import aiohttp
 
-from tests.station.conftest import free_port
+from tests.hil_rig import free_port
 
 
 async def test_demo_ui_prints_a_url_serves_frames_and_ends_on_ctrl_c() -> None:
