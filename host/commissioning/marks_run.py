@@ -35,7 +35,7 @@ from host.commissioning.range_model import (
     Hall,
     Poses,
     block_variance,
-    clean_hit,
+    clean_hits,
     kinematics_of,
     predict,
 )
@@ -104,15 +104,12 @@ def choose_aim(
     pans = np.linspace(-math.pi, math.pi, AIM_PANS, endpoint=False)
     pans = pans[(pans >= pan_limits[0]) & (pans <= pan_limits[1])]
     tilts = np.linspace(max(tilt_limits[0], 0.0), min(tilt_limits[1], math.pi / 2), AIM_TILTS)
-    cand = [(float(p), float(t)) for p in pans for t in tilts]
-    hits = [clean_hit(rig, hall, s_mm, p, t) for p, t in cand]
-    keep = [i for i, j in enumerate(hits) if j is not None]
-    if not keep:
+    pan, tilt = (g.ravel() for g in np.meshgrid(pans, tilts))
+    hits = clean_hits(rig, hall, np.full(pan.size, s_mm), pan, tilt)
+    keep = hits >= 0
+    if not keep.any():
         return None
-    n = len(keep)
-    pan = np.array([cand[i][0] for i in keep])
-    tilt = np.array([cand[i][1] for i in keep])
-    poses = Poses(np.full(n, s_mm), pan, tilt, np.array([hits[i] for i in keep]))
+    poses = Poses(np.full(int(keep.sum()), s_mm), pan[keep], tilt[keep], hits[keep])
     slope = predict(rig, hall, poses, ds_mm=DIFF_MM) - predict(rig, hall, poses, ds_mm=-DIFF_MM)
     slope = np.abs(slope) / (2 * DIFF_MM)
     var = (spec.rangefinder.noise_mm**2 / max(samples, 1) + hall.sigma_mm[poses.surface] ** 2

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from host.geometry.head import Rig
-from host.geometry.rangefinder import RangeScene, range_at
-from host.geometry.transforms import FloatArray, make_T, rotvec_to_R
+from host.geometry.rangefinder import PARALLEL_COS, RangeScene
+from host.geometry.transforms import ArrayLike, FloatArray, make_T, rotvec_to_R
 from host.rig import RigSpec, build_kinematics, build_scene
 
 MIN_COS_INCIDENCE = 0.3  # a beam within ~73° of the surface normal: a clean spot
@@ -68,14 +68,37 @@ class Poses:
         return len(self.s_mm)
 
 
+def clean_hits(
+    rig: Rig, hall: Hall, s_mm: ArrayLike, pan_rad: ArrayLike, tilt_rad: ArrayLike
+) -> np.ndarray:
+    """For each pose, the surface its reading would measure, or -1 when that is ambiguous
+    (no surface, a grazing beam, another surface close behind: a corner). Vectorised
+    RangeScene.cast over poses."""
+    T = rig.T_w_r(np.asarray(s_mm, dtype=np.float64), pan_rad, tilt_rad) @ rig.T_r_l
+    o, z = T[..., :3, 3].reshape(-1, 3), T[..., :3, 2].reshape(-1, 3)
+    cos = z @ hall.normals.T  # (poses, surfaces)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.einsum("jk,ijk->ij", hall.normals, hall.points[None] - o[:, None]) / cos
+    t = np.where((np.abs(cos) > PARALLEL_COS) & (t > 0.0), t, np.inf)
+    radius = np.array([s.radius_mm for s in hall.scene.surfaces])
+    if np.isfinite(radius).any():  # patches: a hit outside the radius misses
+        spot = o[:, None] + np.where(np.isfinite(t), t, 0.0)[..., None] * z[:, None]
+        far = np.linalg.norm(spot - hall.points[None], axis=-1) > radius
+        t = np.where(far, np.inf, t)
+    order = np.sort(t, axis=1)
+    first = np.argmin(t, axis=1)
+    nearest = order[:, 0]
+    behind = order[:, 1] if t.shape[1] > 1 else np.full(len(t), np.inf)
+    incidence = np.abs(cos[np.arange(len(t)), first])
+    ok = np.isfinite(nearest) & (incidence >= MIN_COS_INCIDENCE)
+    ok &= behind - nearest >= MIN_CLEARANCE_MM
+    return np.where(ok, first, -1)
+
+
 def clean_hit(rig: Rig, hall: Hall, s_mm: float, pan: float, tilt: float) -> int | None:
-    """The surface a reading at this pose would measure, if it is unambiguous (else None)."""
-    hit = range_at(rig, hall.scene, s_mm, pan, tilt)
-    if hit is None or hit.cos_incidence < MIN_COS_INCIDENCE:
-        return None
-    if hit.next_mm - hit.distance_mm < MIN_CLEARANCE_MM:
-        return None
-    return hit.surface
+    """The surface a reading at one pose would measure, if it is unambiguous (else None)."""
+    j = int(clean_hits(rig, hall, [s_mm], [pan], [tilt])[0])
+    return None if j < 0 else j
 
 
 def predict(
