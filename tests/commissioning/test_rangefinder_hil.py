@@ -1,0 +1,81 @@
+"""The rangefinder mount and the reference marks on the simulator, through the real daemon.
+
+The daemon runs as the demo runs it (firmware mirror, plant, pty link, `[rig] path` on the
+nominal rig file); the plant's rangefinder reads the true hall through the true mount and its
+mark sensor fires at the true marks (hil_sim.true_rig: mount off by 2 mm / 3 mrad, walls and
+marks by 1 mm). The installer's tape survey of the home is the demo's. Nothing of the truth
+reaches the daemon; the test compares with it afterwards.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from host.commissioning.client import run_op
+from host.commissioning.rangefinder_run import MOUNT_AXES
+from host.control.client import ControlClient
+from host.demo.commissioning_phase import survey_zero
+from host.demo.daemon_phase import running_daemon
+from host.demo.rigs import DemoRigs
+from host.demo.world import SimWorld
+from host.geometry.transforms import R_to_rotvec
+from host.rig import Provenance, Scalar, load_rig, save_rig, update_rig
+
+SEED = 5
+FIRST_STRAIGHT_MM = 3800.0  # before the first arc: the host's and the true track agree here
+
+
+async def _until(client: ControlClient, ok: Callable[[Any], Any], what: str) -> None:
+    deadline = time.monotonic() + 90.0
+    while time.monotonic() < deadline:
+        if ok(await client.request("status")):
+            return
+        await asyncio.sleep(0.2)
+    raise AssertionError(f"{what}: not within 90 s")
+
+
+@pytest.mark.slow
+async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path: Path) -> None:
+    rigs = DemoRigs.make(None, SEED, tolerances=True)
+    rig_file = tmp_path / "rig.toml"
+    save_rig(rigs.nominal, rig_file)
+    world = SimWorld(rigs.scenario(SEED), "pty")
+    await world.start()
+    try:
+        async with running_daemon(world, rig_file, tmp_path / "daemon") as d:
+            client = await ControlClient.connect_unix(str(d.socket_path))
+            async with client:
+                await _until(client, lambda s: s.get("link_up"), "link up")
+                await client.request("home")
+                await _until(client, lambda s: s["controller"].get("state") == "READY", "homed")
+                await asyncio.sleep(0.5)
+                home = Scalar(survey_zero(world, SEED), 1.0, Provenance.now("survey (tape)"))
+                update_rig(rig_file, {"track.home": home}, "survey home")
+                mount = await run_op(
+                    client, "calibrate_rangefinder", {"stations_mm": [1200.0, 3000.0]}
+                )
+                marks = await run_op(client, "survey_marks", {"samples": 10, "max_sigma_mm": 10})
+    finally:
+        await world.stop()
+    assert mount["passed"], mount["reasons"]
+    written = load_rig(rig_file)
+    est, true = written.rangefinder.mount, rigs.truth.rangefinder.mount
+    delta = np.linalg.inv(est.matrix) @ true.matrix
+    err = np.concatenate([R_to_rotvec(delta[:3, :3]), delta[:3, 3]])[list(MOUNT_AXES)]
+    sigma = np.sqrt(np.diag(est.cov()))[list(MOUNT_AXES)]
+    assert np.all(np.abs(err) < 3 * sigma), (err, sigma)
+    assert marks["passed"], marks["reasons"]
+    checked = 0
+    for m, s_true in zip(marks["marks"], rigs.truth.track.marks.s_mm, strict=True):
+        if s_true < FIRST_STRAIGHT_MM:
+            checked += 1
+            assert abs(m["s_mm"] - s_true) < 3 * m["sigma_mm"], (m, s_true)
+    assert checked >= 3
+    assert written.track.marks.provenance.method.startswith("survey marks")
