@@ -179,8 +179,8 @@ async def sensed_daemon(tmp: Path, spec: RigSpec, truth: Truth, home_mm: float,
         control=ControlConfig(socket_path=str(sock)),
         rig=dataclasses.replace(Config().rig, path=str(rig_path)),
     )
-    daemon = Daemon(config, lambda c, t: fake, lambda c, ctl, sink, t: MemoryFrameLoop(ctl, sink),
-                    commissioning=env)  # fmt: skip
+    loop = lambda c, ctl, sink, t: MemoryFrameLoop(fake, sink)  # noqa: E731
+    daemon = Daemon(config, lambda c, t: fake, loop, commissioning=env)
     task = asyncio.create_task(daemon.run())
     try:
         for _ in range(250):

@@ -20,7 +20,7 @@ CALIBRATED = {"mount_sigma": (0.5, 5e-4), "placement_sigma": (0.5, 3e-4)}
 async def test_a_marks_survey_through_the_daemon_writes_marks_within_their_sigma(
     tmp_path: Path,
 ) -> None:
-    spec = hall_rig(**CALIBRATED, marks_mm=MARKS)  # type: ignore[arg-type]
+    spec = hall_rig(**CALIBRATED, marks_mm=MARKS)
     truth = draw_truth(spec, np.random.default_rng(21), mount_from_spec=True)
     async with sensed_daemon(tmp_path, spec, truth, HOME_MM, 21) as bench:
         result = await run_op(
@@ -37,7 +37,7 @@ async def test_a_marks_survey_through_the_daemon_writes_marks_within_their_sigma
 
 
 async def test_an_interrupted_marks_survey_leaves_the_rig_file_alone(tmp_path: Path) -> None:
-    spec = hall_rig(**CALIBRATED, marks_mm=MARKS)  # type: ignore[arg-type]
+    spec = hall_rig(**CALIBRATED, marks_mm=MARKS)
     truth = draw_truth(spec, np.random.default_rng(22), mount_from_spec=True)
     async with sensed_daemon(tmp_path, spec, truth, HOME_MM, 22) as bench:
         before = bench.rig_path.read_bytes()

@@ -10,6 +10,7 @@ reaches the daemon; the test compares with it afterwards.
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +33,19 @@ SEED = 5
 FIRST_STRAIGHT_MM = 3800.0  # before the first arc: the host's and the true track agree here
 
 
+class Dark:
+    """A camera that delivers nothing: these runs need none, and rendering would load the host."""
+
+    def __init__(self) -> None:
+        self._closed = threading.Event()
+
+    def read(self) -> None:
+        self._closed.wait(0.1)
+
+    def close(self) -> None:
+        self._closed.set()
+
+
 async def _until(client: ControlClient, ok: Callable[[Any], Any], what: str) -> None:
     deadline = time.monotonic() + 90.0
     while time.monotonic() < deadline:
@@ -49,7 +63,7 @@ async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path
     world = SimWorld(rigs.scenario(SEED), "pty")
     await world.start()
     try:
-        async with running_daemon(world, rig_file, tmp_path / "daemon") as d:
+        async with running_daemon(world, rig_file, tmp_path / "daemon", camera=Dark()) as d:
             client = await ControlClient.connect_unix(str(d.socket_path))
             async with client:
                 await _until(client, lambda s: s.get("link_up"), "link up")
