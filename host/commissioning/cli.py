@@ -88,6 +88,8 @@ def add_parsers(subparsers: Any) -> None:
     marks.add_argument("--aim-deg", type=float, nargs=2, metavar=("PAN", "TILT"),
                        help="one head aim for every mark (default: chosen per mark)")  # fmt: skip
     marks.add_argument("--max-sigma", type=float, help="pass threshold per mark, mm (default 2)")
+    marks.add_argument("--marks", type=int, nargs="+", metavar="INDEX",
+                       help="only these of the listed marks (0-based; default all)")  # fmt: skip
     marks.set_defaults(handler=run_survey_marks)
 
 
@@ -203,6 +205,8 @@ def run_survey_marks(args: argparse.Namespace) -> int:
     req: dict[str, Any] = {"samples": args.samples, "write": not args.no_write}
     if args.aim_deg:
         req["aim_rad"] = [math.radians(a) for a in args.aim_deg]
+    if args.marks:
+        req["marks"] = list(args.marks)
     for key, value in (("cross_speed_mm_s", args.cross_speed), ("max_sigma_mm", args.max_sigma)):
         if value is not None:
             req[key] = value

@@ -195,8 +195,10 @@ async def survey_marks(
     io: RigIO, tap: RangeTap, spec: RigSpec, pan_limits: tuple[float, float],
     tilt_limits: tuple[float, float], samples: int, cross_speed: float,
     aim: tuple[float, float] | None, limits: MarkThresholds, progress: Progress,
+    only: list[int] | None = None,
 ) -> tuple[dict[str, Any], list[MarkResult]]:  # fmt: skip
-    """Cross every listed mark, range at rest, solve; the result map and the per-mark results."""
+    """Cross every listed mark (or those indexed by `only`), range at rest, solve; the result
+    map and the per-mark results."""
     snap = io.snapshot()
     if snap.get("position_mm") is None or snap.get("state") != "READY":
         raise AbortedError(f"the trolley must be homed and at rest (state {snap.get('state')})")
@@ -210,8 +212,12 @@ async def survey_marks(
     crosser = dataclasses.replace(io, speed_mm_s=cross_speed)
     t_start = time.monotonic_ns()
     results: list[MarkResult] = []
-    for k, s_mark in enumerate(nominal):
-        progress.update(phase="crossing", view=k + 1, of=len(nominal), accepted=len(results))
+    chosen = sorted(set(range(len(nominal)) if only is None else only))
+    if any(not 0 <= k < len(nominal) for k in chosen):
+        raise AbortedError(f"mark indices {chosen}: the rig file lists {len(nominal)} marks")
+    for i, k in enumerate(chosen):
+        s_mark = nominal[k]
+        progress.update(phase="crossing", view=i + 1, of=len(chosen), accepted=len(results))
         before, after = s_mark - APPROACH_MM, s_mark + OVERSHOOT_MM
         if before < lo or after > hi:
             results.append(MarkResult(k, s_mark, problem="outside the trolley's travel"))
@@ -258,12 +264,19 @@ def summary(
     }
 
 
-def marks_update(results: list[MarkResult], samples: int) -> dict[str, Any]:
-    """`track.marks` for the rig file: the surveyed arc lengths and the largest σ."""
+def marks_update(
+    results: list[MarkResult], samples: int, listed: Marks | None = None
+) -> dict[str, Any]:
+    """`track.marks` for the rig file: the surveyed arc lengths and the largest σ. With `listed`
+    (the rig file's marks) a survey of some of them replaces those and keeps the others, whose
+    σ then counts too."""
     if not results or any(r.problem or not math.isfinite(r.sigma_mm) for r in results):
         raise ValueError("only a complete, passing survey is written")
-    s = tuple(sorted(float(r.s_mm) for r in results))
-    sigma = max(r.sigma_mm for r in results)
+    by_index = {r.index: float(r.s_mm) for r in results}
+    old = listed.s_mm if listed is not None else ()
+    kept = [v for k, v in enumerate(old) if k not in by_index]
+    s = tuple(sorted([*kept, *by_index.values()]))
+    sigma = max([r.sigma_mm for r in results] + ([listed.sigma_mm] if listed and kept else []))
     prov = Provenance.now(
         "survey marks (rangefinder on a surveyed surface at rest past each capture)",
         None, "", len(results), f"{samples} readings per mark; σ is the largest of the marks'",

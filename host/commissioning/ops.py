@@ -354,7 +354,8 @@ def _ranging(ctx: OpContext, env: CommissioningEnv) -> tuple[Any, Any]:
 
 
 async def op_survey_marks(ctx: OpContext, args: Mapping[str, Any]) -> Any:
-    """Start a marks survey: samples, cross_speed_mm_s, aim_rad ([pan, tilt]), max_sigma_mm."""
+    """Start a marks survey: samples, cross_speed_mm_s, aim_rad ([pan, tilt]), max_sigma_mm,
+    marks (indices of the listed marks to survey; default all)."""
     env = env_of(ctx)
     samples = count(args, "samples", 20, 1, 500)
     cross = number({"cross_speed_mm_s": marks_run.CROSS_SPEED_MM_S, **args},
@@ -365,6 +366,12 @@ async def op_survey_marks(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         if not isinstance(aim, list | tuple) or len(aim) != 2 or not all(_finite(a) for a in aim):
             raise OpError("bad_args", f"aim_rad = {aim!r}: expected [pan_rad, tilt_rad]")
         aim = (float(aim[0]), float(aim[1]))
+    only = args.get("marks")
+    if only is not None and (
+        not isinstance(only, list) or not only
+        or not all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in only)
+    ):  # fmt: skip
+        raise OpError("bad_args", f"marks = {only!r}: expected indices into track.marks")
     controller, tap = _ranging(ctx, env)
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
     limits = marks_run.MarkThresholds(limit)
@@ -373,9 +380,10 @@ async def op_survey_marks(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         spec = env.spec()
         result, marks = await marks_run.survey_marks(
             _survey_io(env, controller), tap, spec, *head_limits, samples, cross, aim, limits,
-            progress,
+            progress, only,
         )  # fmt: skip
-        updates = marks_run.marks_update(marks, samples) if result["passed"] else None
+        listed = spec.track.marks
+        updates = marks_run.marks_update(marks, samples, listed) if result["passed"] else None
         page = marks_run.marks_page(result, limits)
         return await _conclude(env, args, progress, "marks", result, page, updates)
 

@@ -132,3 +132,21 @@ def test_an_uncalibrated_mount_gives_an_honest_sigma_that_fails() -> None:
     ok, reasons = judge([r], [], MarkThresholds())
     assert not ok
     assert "σ" in reasons[0]
+
+
+def test_a_survey_of_some_marks_keeps_the_others() -> None:
+    spec = hall_rig(mount_sigma=(0.5, 5e-4), placement_sigma=(0.5, 3e-4))
+    rig, hall = kinematics_of(spec)
+    assert hall is not None
+    rng = np.random.default_rng(9)
+    truth = draw_truth(spec, rng, mount_from_spec=True)
+    some = [
+        solve_mark(spec, rig, hall, HOME_MM, crossing(spec, truth, k, rng), 1.0) for k in (1, 4)
+    ]
+    listed = spec.track.marks
+    update = marks_update(some, SAMPLES, listed)["track.marks"]
+    assert len(update.s_mm) == len(listed.s_mm)
+    assert update.s_mm[1] == pytest.approx(some[0].s_mm)
+    assert update.s_mm[4] == pytest.approx(some[1].s_mm)
+    assert update.s_mm[0] == listed.s_mm[0]
+    assert update.sigma_mm == max(listed.sigma_mm, *(r.sigma_mm for r in some))
