@@ -30,7 +30,6 @@ from host.geometry.transforms import R_to_rotvec
 from host.rig import Provenance, Scalar, load_rig, save_rig, update_rig
 
 SEED = 5
-FIRST_STRAIGHT_MM = 3800.0  # before the first arc: the host's and the true track agree here
 
 
 class Dark:
@@ -67,15 +66,20 @@ async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path
             client = await ControlClient.connect_unix(str(d.socket_path))
             async with client:
                 await _until(client, lambda s: s.get("link_up"), "link up")
+                # a shared, loaded machine can starve the host's heartbeat for longer than the
+                # default 500 ms: that would latch WATCHDOG mid-run, which is not under test here
+                await client.request("param_set", param="WATCHDOG_MS", value=5000)
                 await client.request("home")
                 await _until(client, lambda s: s["controller"].get("state") == "READY", "homed")
                 await asyncio.sleep(0.5)
                 home = Scalar(survey_zero(world, SEED), 1.0, Provenance.now("survey (tape)"))
                 update_rig(rig_file, {"track.home": home}, "survey home")
-                mount = await run_op(
-                    client, "calibrate_rangefinder", {"stations_mm": [1200.0, 3000.0]}
-                )
-                marks = await run_op(client, "survey_marks", {"samples": 10, "max_sigma_mm": 10})
+                # the default plan: 4 stations × 8 pans × 3 tilts (fewer leave the origin's σ
+                # over 1 mm while the placement is only known to its nominal 5 mm)
+                mount = await run_op(client, "calibrate_rangefinder", {})
+                # the placement's nominal σ keeps each mark's near 5 mm: a looser threshold
+                first = {"samples": 10, "max_sigma_mm": 10.0, "marks": [0, 1, 2, 3]}
+                marks = await run_op(client, "survey_marks", first)
     finally:
         await world.stop()
     assert mount["passed"], mount["reasons"]
@@ -87,9 +91,11 @@ async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path
     assert np.all(np.abs(err) < 3 * sigma), (err, sigma)
     assert marks["passed"], marks["reasons"]
     checked = 0
-    for m, s_true in zip(marks["marks"], rigs.truth.track.marks.s_mm, strict=True):
-        if s_true < FIRST_STRAIGHT_MM:
-            checked += 1
-            assert abs(m["s_mm"] - s_true) < 3 * m["sigma_mm"], (m, s_true)
-    assert checked >= 3
+    for m in marks["marks"]:  # the first straight: the host's and the true track agree there
+        s_true = rigs.truth.track.marks.s_mm[m["index"]]
+        checked += 1
+        assert abs(m["s_mm"] - s_true) < 3 * m["sigma_mm"], (m, s_true)
+    assert checked == 4
+    listed = rigs.nominal.track.marks.s_mm
+    assert written.track.marks.s_mm[4:] == listed[4:]  # the marks not surveyed are kept
     assert written.track.marks.provenance.method.startswith("survey marks")
