@@ -67,7 +67,7 @@ class MountThresholds:
     """The stated pass/fail thresholds of a mount calibration."""
 
     max_rms_mm: float = 2.0  # RMS residual of the inliers
-    max_sigma_mm: float = 1.0  # σ of each of the beam origin's coordinates
+    max_sigma_mm: float = 1.5  # σ of each of the beam origin's coordinates (nominal: 3 mm)
     max_sigma_mrad: float = 1.0  # σ of each of the beam direction's tilts
     max_condition: float = 1e3  # of the mount's correlation matrix (near 1: independent)
     min_poses: int = 12

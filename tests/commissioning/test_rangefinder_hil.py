@@ -82,7 +82,7 @@ async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path
                 marks = await run_op(client, "survey_marks", first)
     finally:
         await world.stop()
-    assert mount["passed"], mount["reasons"]
+    assert mount["passed"], (mount["reasons"], mount.get("table"), mount.get("rejected"))
     written = load_rig(rig_file)
     est, true = written.rangefinder.mount, rigs.truth.rangefinder.mount
     delta = np.linalg.inv(est.matrix) @ true.matrix
