@@ -55,6 +55,7 @@ async def _until(client: ControlClient, ok: Callable[[Any], Any], what: str) -> 
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # about 4 min of ranging (94 poses) and 4 mark crossings
 async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path: Path) -> None:
     rigs = DemoRigs.make(None, SEED, tolerances=True)
     rig_file = tmp_path / "rig.toml"
