@@ -56,6 +56,18 @@ def add_parsers(subparsers: Any) -> None:
     lat.add_argument("--span", type=float, default=200.0, help="pass length, mm (default 200)")
     lat.add_argument("--passes", type=int, default=6, help="passes back and forth (default 6)")
     lat.set_defaults(handler=lambda a: run_posed(a, "calibrate_latency"))
+    rf = _common(
+        sub.add_parser("rangefinder", help="the rangefinder's mount from readings on the hall")
+    )
+    rf.add_argument("--stations", type=float, nargs="+", metavar="S_MM",
+                    help="arc lengths to range from (default: 4 along the travel)")  # fmt: skip
+    rf.add_argument("--pans", type=int, default=8, help="head pans per station and tilt")
+    rf.add_argument("--tilts-deg", type=float, nargs="+", metavar="DEG",
+                    help="head tilts (default: 3 between the floor and the horizon)")  # fmt: skip
+    rf.add_argument("--aims", metavar="FILE", help="JSON [[s_mm, pan_rad, tilt_rad], ...] poses")
+    rf.add_argument("--samples", type=int, default=5, help="readings averaged per pose")
+    rf.add_argument("--max-rms", type=float, help="pass threshold, mm (default 2.0)")
+    rf.set_defaults(handler=run_calibrate_rangefinder)
     survey = subparsers.add_parser("survey", help="commissioning: survey with the rangefinder")
     ssub = survey.add_subparsers(dest="survey_command", required=True)
     wp = _common(ssub.add_parser("workpiece", help="the workpiece frame from its feature points"))
@@ -70,6 +82,15 @@ def add_parsers(subparsers: Any) -> None:
     home.add_argument("tilt_deg", type=float, help="head tilt")
     home.add_argument("--samples", type=int, default=20, help="readings averaged")
     home.set_defaults(handler=run_survey_home)
+    marks = _common(ssub.add_parser("marks", help="each reference mark's arc length, from a wall"))
+    marks.add_argument("--samples", type=int, default=20, help="readings averaged per mark")
+    marks.add_argument("--cross-speed", type=float, help="speed across each mark, mm/s (100)")
+    marks.add_argument("--aim-deg", type=float, nargs=2, metavar=("PAN", "TILT"),
+                       help="one head aim for every mark (default: chosen per mark)")  # fmt: skip
+    marks.add_argument("--max-sigma", type=float, help="pass threshold per mark, mm (default 2)")
+    marks.add_argument("--marks", type=int, nargs="+", metavar="INDEX",
+                       help="only these of the listed marks (0-based; default all)")  # fmt: skip
+    marks.set_defaults(handler=run_survey_marks)
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
@@ -177,6 +198,37 @@ def run_survey_home(args: argparse.Namespace) -> int:
     req = {"pan_rad": math.radians(args.pan_deg), "tilt_rad": math.radians(args.tilt_deg)}
     req.update(samples=args.samples, write=not args.no_write)
     return follow(args, "survey_home", req)
+
+
+def run_survey_marks(args: argparse.Namespace) -> int:
+    """`orbitar survey marks`."""
+    req: dict[str, Any] = {"samples": args.samples, "write": not args.no_write}
+    if args.aim_deg:
+        req["aim_rad"] = [math.radians(a) for a in args.aim_deg]
+    if args.marks:
+        req["marks"] = list(args.marks)
+    for key, value in (("cross_speed_mm_s", args.cross_speed), ("max_sigma_mm", args.max_sigma)):
+        if value is not None:
+            req[key] = value
+    return follow(args, "survey_marks", req)
+
+
+def run_calibrate_rangefinder(args: argparse.Namespace) -> int:
+    """`orbitar calibrate rangefinder`."""
+    req: dict[str, Any] = {"samples": args.samples, "pans": args.pans, "write": not args.no_write}
+    try:
+        if args.aims:
+            req["aims"] = _json(args.aims)
+    except (OSError, ValueError) as exc:
+        return _fail(str(exc))
+    if args.stations:
+        req["stations_mm"] = list(args.stations)
+    if args.tilts_deg:
+        req["tilts_rad"] = [math.radians(t) for t in args.tilts_deg]
+    for key, value in (("max_rms_mm", args.max_rms), ("speed_mm_s", args.speed)):
+        if value is not None:
+            req[key] = value
+    return follow(args, "calibrate_rangefinder", req)
 
 
 def _json(path: str) -> Any:

@@ -69,12 +69,14 @@ async def wait_frame(tap: FrameTap, after_ns: int, timeout_s: float) -> Frame:
 
 
 class RangeTap:
-    """A controller sample sink keeping the newest rangefinder readings (thread-safe)."""
+    """A controller sample sink keeping the newest rangefinder readings and reference-mark
+    captures (thread-safe)."""
 
     def __init__(self, keep: int = 256) -> None:
         self._lock = threading.Lock()
         self._keep = keep
         self._readings: list[tuple[int, float, int]] = []
+        self._marks: list[tuple[int, float]] = []
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
         """Not needed here."""
@@ -83,7 +85,10 @@ class RangeTap:
         """Not needed here."""
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
-        """Not needed here."""
+        """Keep a mark's captured encoder position (the controller's mm)."""
+        with self._lock:
+            self._marks.append((t_host_ns, s_mm))
+            del self._marks[: -self._keep]
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
         """Keep a reading."""
@@ -95,6 +100,11 @@ class RangeTap:
         """Readings taken after t_ns, oldest first."""
         with self._lock:
             return [r for r in self._readings if r[0] > t_ns]
+
+    def marks_since(self, t_ns: int) -> list[tuple[int, float]]:
+        """Mark captures (host time, controller position mm) after t_ns, oldest first."""
+        with self._lock:
+            return [m for m in self._marks if m[0] > t_ns]
 
 
 async def wait_ranges(tap: RangeTap, after_ns: int, count: int, timeout_s: float) -> list[float]:

@@ -46,23 +46,10 @@ async def survey_home(
     readings = await wait_ranges(tap, time.monotonic_ns(), samples, RANGE_TIMEOUT_S)
     d = float(np.mean(readings))
 
-    def predicted(s: float) -> float:
-        hit = range_at(rig, scene, s, pan, tilt)
-        return math.nan if hit is None else hit.distance_mm
-
-    s = s0
-    slope = math.nan
-    for _ in range(NEWTON_STEPS):
-        p = predicted(s)
-        slope = (predicted(s + DIFF_MM) - predicted(s - DIFF_MM)) / (2 * DIFF_MM)
-        if not (math.isfinite(p) and math.isfinite(slope)):
-            return _fail("the beam meets no surveyed surface from here (aim at an end wall)")
-        if abs(slope) < MIN_SLOPE:
-            return _fail(f"the beam is across the track (∂range/∂s = {slope:.2f} < {MIN_SLOPE})")
-        step = (d - p) / slope
-        s += step
-        if abs(step) < 1e-3:
-            break
+    found = locate(rig, scene, s0, pan, tilt, d)
+    if isinstance(found, str):
+        return _fail(found)
+    s, slope = found
     sigma = math.hypot(noise_mm / math.sqrt(samples), wall_sigma_mm) / abs(slope)
     home = s - float(position)
     ok = sigma <= MAX_SIGMA_MM
@@ -74,6 +61,32 @@ async def survey_home(
     ]  # fmt: skip
     return {"passed": ok, "reasons": [why], "home_mm": home, "sigma_mm": sigma, "range_mm": d,
             "slope": slope, "table": text_table(["quantity", "value"], rows)}  # fmt: skip
+
+
+def locate(
+    rig: Rig, scene: RangeScene, s0: float, pan: float, tilt: float, distance_mm: float
+) -> tuple[float, float] | str:
+    """The arc length (from s0) at which the rig's beam reads `distance_mm`, and ∂range/∂s
+    there; a message instead when the beam meets no surface or runs across the track."""
+
+    def predicted(s: float) -> float:
+        hit = range_at(rig, scene, s, pan, tilt)
+        return math.nan if hit is None else hit.distance_mm
+
+    s = s0
+    slope = math.nan
+    for _ in range(NEWTON_STEPS):
+        p = predicted(s)
+        slope = (predicted(s + DIFF_MM) - predicted(s - DIFF_MM)) / (2 * DIFF_MM)
+        if not (math.isfinite(p) and math.isfinite(slope)):
+            return "the beam meets no surveyed surface from here (aim at an end wall)"
+        if abs(slope) < MIN_SLOPE:
+            return f"the beam is across the track (∂range/∂s = {slope:.2f} < {MIN_SLOPE})"
+        step = (distance_mm - p) / slope
+        s += step
+        if abs(step) < 1e-3:
+            break
+    return s, slope
 
 
 def home_update(result: dict[str, Any], samples: int) -> dict[str, Any]:

@@ -18,7 +18,15 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import head_run, home_run, intrinsics_run, latency_run, survey_run
+from host.commissioning import (
+    head_run,
+    home_run,
+    intrinsics_run,
+    latency_run,
+    marks_run,
+    rangefinder_run,
+    survey_run,
+)
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBusyError, Progress
@@ -30,6 +38,7 @@ from host.geometry.transforms import FloatArray
 from host.rig import update_rig
 
 MAX_STATIONS = 64
+MAX_POSES = 512
 MAX_ABS_MM = 1e6
 
 
@@ -161,22 +170,9 @@ def _start_capture_run(
         views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
         progress["phase"] = "solving"
         summary, page, updates = await asyncio.to_thread(finish, views, rig, camera)
-        report = await asyncio.to_thread(_write, env.report_root, kind, page)
-        written = None
-        if summary["passed"] and updates and bool(args.get("write", True)) and env.rig_path:
-            progress["phase"] = "writing"
-            await asyncio.to_thread(update_rig, env.rig_path, updates, f"calibrate {kind}")
-            written = str(env.rig_path)
-            if env.after_write is not None:
-                await env.after_write()
-        progress["phase"] = "done"
-        return {**summary, "report": report, "written": written, "rig_file": _path(env)}
+        return await _conclude(env, args, progress, kind, summary, page, updates)
 
-    try:
-        job = env.jobs.start(kind, run)
-    except JobBusyError as exc:
-        raise OpError("busy", str(exc)) from exc
-    return {"job": job.id, "kind": job.kind}
+    return _start(env, kind, run)
 
 
 async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -230,9 +226,7 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     station = number(args, "station_mm", -MAX_ABS_MM, MAX_ABS_MM)
     span = number({"span_mm": 200.0, **args}, "span_mm", 20.0, 5000.0)
     speed = number({"speed_mm_s": 300.0, **args}, "speed_mm_s", 10.0, MAX_SPEED_MM_S)
-    passes = args.get("passes", 6)
-    if isinstance(passes, bool) or not isinstance(passes, int) or not 2 <= passes <= 40:
-        raise OpError("bad_args", f"passes = {passes!r}: expected an integer in [2, 40]")
+    passes = count(args, "passes", 6, 2, 40)
     if ctx.controller is None or not ctx.controller.connected:
         raise OpError("unavailable", "the controller link is not up")
     if env.frames() is None or env.pose_at is None:
@@ -260,26 +254,11 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         out = await asyncio.to_thread(
             latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits
         )
-        report = await asyncio.to_thread(
-            _write, env.report_root, "latency", latency_run.latency_page(out, limits)
-        )
-        written = None
-        if out.passed and bool(args.get("write", True)) and env.rig_path is not None:
-            progress["phase"] = "writing"
-            await asyncio.to_thread(
-                update_rig, env.rig_path, latency_run.latency_update(out), "calibrate latency"
-            )
-            written = str(env.rig_path)
-            if env.after_write is not None:
-                await env.after_write()
-        progress["phase"] = "done"
-        return {**out.summary(), "report": report, "written": written, "rig_file": _path(env)}
+        updates = latency_run.latency_update(out) if out.passed else None
+        page = latency_run.latency_page(out, limits)
+        return await _conclude(env, args, progress, "latency", out.summary(), page, updates)
 
-    try:
-        job = env.jobs.start("latency", run)
-    except JobBusyError as exc:
-        raise OpError("busy", str(exc)) from exc
-    return {"job": job.id, "kind": job.kind}
+    return _start(env, "latency", run)
 
 
 def aims(args: Mapping[str, Any]) -> list[ViewTarget]:
@@ -306,9 +285,7 @@ async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         model_p = np.array(model, dtype=np.float64) if isinstance(model, list) else np.zeros(0)
         if model_p.shape != (len(targets), 3) or not np.isfinite(model_p).all():
             raise OpError("bad_args", f"model_points_mm: expected {len(targets)} finite [x, y, z]")
-    samples = args.get("samples", 10)
-    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 200:
-        raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 200]")
+    samples = count(args, "samples", 10, 1, 200)
     noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
     # where the calibrated rig puts the beam's origin (home and track surveys, ~1 mm)
     rig_sigma = number({"rig_sigma_mm": 1.0, **args}, "rig_sigma_mm", 0.0, 100.0)
@@ -321,29 +298,16 @@ async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
     async def run(progress: Progress) -> dict[str, Any]:
         rig, _ = env.kinematics()
-        io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
-        points = await survey_run.measure(io, tap, rig, targets, samples, progress)
+        points = await survey_run.measure(_survey_io(env, controller), tap, rig, targets,
+                                          samples, progress)  # fmt: skip
         sigma = float(np.hypot(survey_run.point_sigma_mm(noise, samples), rig_sigma))
         ok, reasons, fit = survey_run.judge(points, model_p, sigma)
         result = survey_run.summary(ok, reasons, points, fit)
-        report = await asyncio.to_thread(
-            _write, env.report_root, "workpiece", survey_run.page(result)
-        )
-        written = None
-        if ok and fit is not None and bool(args.get("write", True)) and env.rig_path is not None:
-            update = survey_run.workpiece_update(fit, len(points))
-            await asyncio.to_thread(update_rig, env.rig_path, update, "survey workpiece")
-            written = str(env.rig_path)
-            if env.after_write is not None:
-                await env.after_write()
-        progress["phase"] = "done"
-        return {**result, "report": report, "written": written, "rig_file": _path(env)}
+        updates = survey_run.workpiece_update(fit, len(points)) if ok and fit else None
+        page = survey_run.page(result)
+        return await _conclude(env, args, progress, "workpiece", result, page, updates)
 
-    try:
-        job = env.jobs.start("workpiece", run)
-    except JobBusyError as exc:
-        raise OpError("busy", str(exc)) from exc
-    return {"job": job.id, "kind": job.kind}
+    return _start(env, "workpiece", run)
 
 
 async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -351,9 +315,7 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     env = env_of(ctx)
     pan = number(args, "pan_rad", *ctx.pan_limits_rad)
     tilt = number(args, "tilt_rad", *ctx.tilt_limits_rad)
-    samples = args.get("samples", 20)
-    if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 500:
-        raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 500]")
+    samples = count(args, "samples", 20, 1, 500)
     noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
     wall = number({"wall_sigma_mm": 1.0, **args}, "wall_sigma_mm", 0.0, 100.0)
     if ctx.controller is None or not ctx.controller.connected:
@@ -368,29 +330,122 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
 
     async def run(progress: Progress) -> dict[str, Any]:
         rig, _ = env.kinematics()
-        io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
         result = await home_run.survey_home(
-            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress
-        )
-        report = await asyncio.to_thread(
-            _write, env.report_root, "home", home_run.home_page(result)
-        )
-        written = None
-        if result["passed"] and bool(args.get("write", True)) and env.rig_path is not None:
-            await asyncio.to_thread(
-                update_rig, env.rig_path, home_run.home_update(result, samples), "survey home"
-            )
-            written = str(env.rig_path)
-            if env.after_write is not None:
-                await env.after_write()
-        progress["phase"] = "done"
-        return {**result, "report": report, "written": written, "rig_file": _path(env)}
+            _survey_io(env, controller), tap, rig, scene, pan, tilt, samples, noise, wall,
+            progress,
+        )  # fmt: skip
+        updates = home_run.home_update(result, samples) if result["passed"] else None
+        page = home_run.home_page(result)
+        return await _conclude(env, args, progress, "home", result, page, updates)
 
-    try:
-        job = env.jobs.start("home", run)
-    except JobBusyError as exc:
-        raise OpError("busy", str(exc)) from exc
-    return {"job": job.id, "kind": job.kind}
+    return _start(env, "home", run)
+
+
+def _ranging(ctx: OpContext, env: CommissioningEnv) -> tuple[Any, Any]:
+    """The controller and its rangefinder tap (`unavailable` without either or a hall)."""
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    tap = env.ranges() if env.ranges is not None else None
+    if tap is None or env.scene() is None:
+        raise OpError(
+            "unavailable", "no rangefinder readings or no surveyed surfaces in the rig file"
+        )
+    return ctx.controller, tap
+
+
+async def op_survey_marks(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a marks survey: samples, cross_speed_mm_s, aim_rad ([pan, tilt]), max_sigma_mm,
+    marks (indices of the listed marks to survey; default all)."""
+    env = env_of(ctx)
+    samples = count(args, "samples", 20, 1, 500)
+    cross = number({"cross_speed_mm_s": marks_run.CROSS_SPEED_MM_S, **args},
+                   "cross_speed_mm_s", 5.0, MAX_SPEED_MM_S)  # fmt: skip
+    limit = number({"max_sigma_mm": 2.0, **args}, "max_sigma_mm", 0.01, 50.0)
+    aim = args.get("aim_rad")
+    if aim is not None:
+        if not isinstance(aim, list | tuple) or len(aim) != 2 or not all(_finite(a) for a in aim):
+            raise OpError("bad_args", f"aim_rad = {aim!r}: expected [pan_rad, tilt_rad]")
+        aim = (float(aim[0]), float(aim[1]))
+    only = args.get("marks")
+    if only is not None and (
+        not isinstance(only, list) or not only
+        or not all(isinstance(k, int) and not isinstance(k, bool) and k >= 0 for k in only)
+    ):  # fmt: skip
+        raise OpError("bad_args", f"marks = {only!r}: expected indices into track.marks")
+    controller, tap = _ranging(ctx, env)
+    head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
+    limits = marks_run.MarkThresholds(limit)
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        spec = env.spec()
+        result, marks = await marks_run.survey_marks(
+            _survey_io(env, controller), tap, spec, *head_limits, samples, cross, aim, limits,
+            progress, only,
+        )  # fmt: skip
+        listed = spec.track.marks
+        updates = marks_run.marks_update(marks, samples, listed) if result["passed"] else None
+        page = marks_run.marks_page(result, limits)
+        return await _conclude(env, args, progress, "marks", result, page, updates)
+
+    return _start(env, "marks", run)
+
+
+def poses_arg(args: Mapping[str, Any]) -> list[ViewTarget] | None:
+    """`aims`: an explicit pose list [[s_mm, pan_rad, tilt_rad], ...] (None: plan one)."""
+    v = args.get("aims")
+    if v is None:
+        return None
+    why = f"aims: expected 1-{MAX_POSES} [s_mm, pan_rad, tilt_rad]"
+    if not isinstance(v, list) or not 1 <= len(v) <= MAX_POSES:
+        raise OpError("bad_args", why)
+    out = []
+    for a in v:
+        if not isinstance(a, list | tuple) or len(a) != 3 or not all(_finite(x) for x in a):
+            raise OpError("bad_args", why)
+        out.append(ViewTarget(float(a[0]), float(a[1]), float(a[2]), f"s={a[0]:.0f}"))
+    return out
+
+
+async def op_calibrate_rangefinder(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a mount calibration: stations_mm, pans, tilts_rad or aims; samples, speed_mm_s."""
+    env = env_of(ctx)
+    explicit = poses_arg(args)
+    where = None if args.get("stations_mm") is None else stations(args, ctx)
+    pans = count(args, "pans", rangefinder_run.DEFAULT_PANS, 3, 72)
+    tilts = args.get("tilts_rad")
+    if tilts is not None and (
+        not isinstance(tilts, list) or not 1 <= len(tilts) <= 12
+        or not all(_finite(t) and ctx.tilt_limits_rad[0] <= t <= ctx.tilt_limits_rad[1]
+                   for t in tilts)
+    ):  # fmt: skip
+        raise OpError("bad_args", f"tilts_rad = {tilts!r}: expected 1-12 tilts within the limits")
+    samples = count(args, "samples", 5, 1, 100)
+    speed = number({"speed_mm_s": TRAVEL_SPEED_MM_S, **args}, "speed_mm_s", 1.0, MAX_SPEED_MM_S)
+    base = rangefinder_run.MountThresholds()
+    limits = rangefinder_run.MountThresholds(
+        number({"max_rms_mm": base.max_rms_mm, **args}, "max_rms_mm", 0.01, 100.0)
+    )
+    controller, tap = _ranging(ctx, env)
+    tilt_limits = ctx.tilt_limits_rad
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        spec = env.spec()
+        plan = explicit or rangefinder_run.default_plan(
+            spec, where, pans, None if tilts is None else [float(t) for t in tilts], tilt_limits
+        )
+        progress["planned"] = len(plan)
+        if not plan:
+            raise AbortedError("no pose of the plan puts the beam cleanly on a surveyed surface")
+        io = _survey_io(env, controller, speed)
+        samples_got, missed = await rangefinder_run.capture(io, tap, plan, samples, progress)
+        progress["phase"] = "solving"
+        fit = await asyncio.to_thread(rangefinder_run.fit_mount, spec, samples_got, limits)
+        result = {**fit.summary(), "planned": len(plan), "no_reading": missed}
+        updates = rangefinder_run.mount_update(fit) if fit.passed else None
+        page = rangefinder_run.mount_page(fit, limits)
+        return await _conclude(env, args, progress, "rangefinder", result, page, updates)
+
+    return _start(env, "rangefinder", run)
 
 
 class _NoCamera:
@@ -406,6 +461,47 @@ class _NoCamera:
 def _write(root: Path, kind: str, page: Page) -> str:
     """A run's report directory and page."""
     return str(write_page(run_dir(root, kind), page))
+
+
+async def _conclude(
+    env: CommissioningEnv, args: Mapping[str, Any], progress: Progress, kind: str,
+    result: Mapping[str, Any], page: Page, updates: Mapping[str, Any] | None,
+) -> dict[str, Any]:  # fmt: skip
+    """How every run ends: its report page, then the rig file updated only when the run passed,
+    `write` allows it and the daemon has a rig file (the daemon rereads it after)."""
+    report = await asyncio.to_thread(_write, env.report_root, kind, page)
+    written = None
+    if result["passed"] and updates and bool(args.get("write", True)) and env.rig_path:
+        progress["phase"] = "writing"
+        await asyncio.to_thread(update_rig, env.rig_path, updates, f"commissioning: {kind}")
+        written = str(env.rig_path)
+        if env.after_write is not None:
+            await env.after_write()
+    progress["phase"] = "done"
+    return {**result, "report": report, "written": written, "rig_file": _path(env)}
+
+
+def _start(env: CommissioningEnv, kind: str, run: Any) -> dict[str, Any]:
+    """Start a run on the job board (`busy` while another runs); its id."""
+    try:
+        job = env.jobs.start(kind, run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
+def _survey_io(env: CommissioningEnv, controller: Any, speed: float = TRAVEL_SPEED_MM_S) -> RigIO:
+    """Motion for a rangefinder run (it needs no frames)."""
+    return RigIO(controller, env.frames() or FrameTap(_NoCamera()), speed,
+                 home_s_mm=env.home_s_mm())  # fmt: skip
+
+
+def count(args: Mapping[str, Any], key: str, default: int, lo: int, hi: int) -> int:
+    """An integer argument in [lo, hi]."""
+    v = args.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise OpError("bad_args", f"{key} = {v!r}: expected an integer in [{lo}, {hi}]")
+    return v
 
 
 async def op_commissioning_status(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -448,6 +544,8 @@ COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
     "calibrate_latency": (op_calibrate_latency, Role.OPERATOR),
     "survey_workpiece": (op_survey_workpiece, Role.OPERATOR),
     "survey_home": (op_survey_home, Role.OPERATOR),
+    "survey_marks": (op_survey_marks, Role.OPERATOR),
+    "calibrate_rangefinder": (op_calibrate_rangefinder, Role.OPERATOR),
     "commissioning_status": (op_commissioning_status, Role.VIEWER),
     "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }
