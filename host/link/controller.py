@@ -25,6 +25,7 @@ from typing import Any
 
 from host.link.batches import BATCH_TYPES, BatchStats, TelemetryPlan, plan_for, unpack
 from host.link.common import (
+    UM_PER_MM,
     LinkError,
     LinkEvent,
     LinkState,
@@ -42,7 +43,6 @@ from host.link.limits import (
 )
 from host.link.reconnect import BackoffConfig, Supervisor
 from host.link.samples import (
-    UM_PER_MM,
     URAD_PER_RAD,
     EncoderReading,
     HeadReading,
