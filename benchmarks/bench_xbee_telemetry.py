@@ -33,6 +33,7 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +70,9 @@ def plan_of(mode: str) -> TelemetryPlan | None:
     if not mode.startswith("ages_"):
         return plan_for("xbee")
     enc, rng = (int(x) for x in mode.removeprefix("ages_").split("_"))
-    return TelemetryPlan({Stream.ENCODER: enc, Stream.RANGE: rng, Stream.HEAD: 0})
+    xbee = plan_for("xbee")
+    assert xbee is not None
+    return replace(xbee, ages_ms={Stream.ENCODER: enc, Stream.RANGE: rng, Stream.HEAD: 0})
 
 
 class AgeSink:
