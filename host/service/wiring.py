@@ -55,25 +55,24 @@ log = logging.getLogger(__name__)
 # Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN),
 # leaving room for commands, their replies and retransmissions.
 #
-# XBee budget. The air carries ~35 kbit/s = 4375 B/s for both directions (one half-duplex
-# channel), and each wire frame is one RF packet with 18 bytes of air overhead. Alone, a sample
-# costs its frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44 B, so 100 Hz of it would nearly fill the
-# air by itself. With batched telemetry (both sides offer it in the handshake) a packet carries a
-# stream's samples of up to its batch age (host.link.batches.BATCH_AGES_MS): its first sample in
-# full, then 9 B (encoder) or 5 B (range) per further one. At the rates below, per second:
-# encoder 100 Hz, age 40 ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, ~4 a
-# batch: 612 B; head 10 Hz alone (its 100 ms step exceeds a record's 65 ms): 10 × (21 + 18) =
-# 390 B; STATUS 2 × (27 + 18) = 90 B. The clock sync's probe pairs cost 2 × (23 + 18) = 82 B per
-# Hz: 4 Hz until the fit converges (host.link.batches.PROBE_FAST_S), then 1 Hz
-# (host.link.probe_rate). The host's HEARTBEAT (13 + 18 B) fills its silences every
-# WATCHDOG_MS / 4 (but not more often than `heartbeat_ms`): 248 B/s at the default 500 ms
-# watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 62 B/s at a 2 s watchdog. Converged that is
-# 2774 B/s + heartbeats = 63 % + 1.4–5.7 % of the air with ranging; converging, 5.6 % more for
-# ~6 s. The rest carries commands (a full window of 8 MOVE_TO and their ACKs is ~0.6 kB, 0.14 s
-# of air) and MAC retries; tests/service/test_stream_budget.py redoes the sum with the
-# firmware's own batcher. Beyond the air's rate a module's 202-byte buffer overflows and loses
-# replies as often as telemetry; the daemon then sheds telemetry on XBee (`XBEE_SHEDDING`),
-# slowing the streams and lengthening the batch ages together.
+# XBee budget. The air carries ~35 kbit/s = 4375 B/s for both directions (one half-duplex channel),
+# and each wire frame is one RF packet with 18 bytes of air overhead. Alone, a sample costs its
+# frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44 B, so 100 Hz of it would nearly fill the air by itself.
+# With batched telemetry (both sides offer it in the handshake) a packet carries a stream's samples
+# of up to its batch age (host.link.batches.BATCH_AGES_MS): its first sample in full, then 9 B
+# (encoder) or 5 B (range) per further one. At the rates below, per second: encoder 100 Hz, age 40
+# ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, ~4 a batch: 612 B; head 10 Hz
+# alone (its 100 ms step exceeds a record's 65 ms): 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) =
+# 90 B. The clock sync's probe pairs cost 2 × (23 + 18) = 82 B per Hz: 4 Hz until the fit converges
+# (host.link.batches.PROBE_FAST_S), then 1 Hz (host.link.probe_rate). The host's HEARTBEAT (13 + 18
+# B) fills its silences every WATCHDOG_MS / 4 (not more often than `heartbeat_ms`, at least every
+# 250 ms): 248 B/s at the default 500 ms watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 124 B/s at a
+# 2 s watchdog. Converged that is 2774 B/s + heartbeats = 63 % + 2.8–5.7 % of the air with ranging;
+# converging, 5.6 % more for ~6 s. The rest carries commands (a full window of 8 MOVE_TO and their
+# ACKs is ~0.6 kB, 0.14 s of air) and MAC retries; tests/service/test_stream_budget.py redoes the
+# sum with the firmware's own batcher. Beyond the air's rate a module's 202-byte buffer overflows
+# and loses replies as often as telemetry; the daemon then sheds telemetry on XBee
+# (`XBEE_SHEDDING`), slowing the streams and lengthening the batch ages together.
 # The price of batching is age. A sample's trip is store-and-forward: controller UART (115200
 # Bd), air, module latency, host UART: ~21 ms for a 35-byte frame, +3.6 ms per further 9-byte
 # record, plus waiting for the air. A batch of n encoder samples at 100 Hz holds its oldest

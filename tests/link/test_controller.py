@@ -304,6 +304,8 @@ async def test_heartbeat_period_follows_the_controllers_watchdog() -> None:
         await asyncio.sleep(0.55)
         sent = ctrl.session.stats.heartbeats_out - out0
         assert 4 <= sent <= 6, f"{sent} heartbeats in 0.55 s at a 0.1 s period"
+        await ctrl.set_param(ParamId.WATCHDOG_MS, 10_000)
+        assert ctrl.session.heartbeat_s == pytest.approx(0.25), "a long watchdog is slack"
         await ctrl.set_param(ParamId.WATCHDOG_MS, 40)
         assert ctrl.session.heartbeat_s == pytest.approx(0.02), "never below the configured"
     finally:
