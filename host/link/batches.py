@@ -130,10 +130,6 @@ SINGLE_SAMPLE_RATES_HZ: dict[str, tuple[dict[Stream, int], dict[Stream, int]]] =
     ),
 }
 MAX_AGE_MS = 1_000  # the parameters' ceiling
-# The clock sync's fast probes (until its fit converges), where a link cannot afford 10 Hz: over
-# XBee a probe and its reply cost 82 bytes of air, so 10 Hz took 19 % on top of the telemetry
-# (81 % for the first ~20 s) and overflowed the modules; 4 Hz takes 7.5 % and converges in ~6 s.
-PROBE_FAST_S: dict[str, float] = {"xbee": 0.25}
 
 
 @dataclass(frozen=True)
@@ -142,7 +138,6 @@ class TelemetryPlan:
 
     ages_ms: dict[Stream, int]
     single_rates_hz: tuple[dict[Stream, int], dict[Stream, int]] | None = None
-    probe_fast_s: float | None = None  # fast clock probes no more often than this (s)
 
     def age_params(self, scale: float = 1.0) -> dict[int, int]:
         """Parameter id → age; while shedding (scale < 1) batches wait longer, so fewer go."""
@@ -167,6 +162,4 @@ def plan_for(kind: str) -> TelemetryPlan | None:
     """The plan of a link kind (a transport's scheme); None for one without a budget."""
     if kind not in BATCH_AGES_MS:
         return None
-    return TelemetryPlan(
-        BATCH_AGES_MS[kind], SINGLE_SAMPLE_RATES_HZ.get(kind), PROBE_FAST_S.get(kind)
-    )
+    return TelemetryPlan(BATCH_AGES_MS[kind], SINGLE_SAMPLE_RATES_HZ.get(kind))

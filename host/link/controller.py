@@ -20,7 +20,7 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 from host.link.batches import BATCH_TYPES, BatchStats, TelemetryPlan, plan_for, unpack
@@ -130,10 +130,6 @@ class Controller:
 
     def __post_init__(self) -> None:
         self.telemetry_plan = self.telemetry_plan or plan_for(self.transport.scheme)
-        probe_s = self.telemetry_plan.probe_fast_s if self.telemetry_plan else None
-        if probe_s and 0 < self.session_config.clock_sync_interval_s < probe_s:
-            # The link's budget has no room for the session's fast probes while the fit converges.
-            self.session_config = replace(self.session_config, clock_sync_interval_s=probe_s)
         self.session = Session(self.transport, self.session_config, on_packet=self._on_packet)
         self.supervisor = Supervisor(
             self.session,

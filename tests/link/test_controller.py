@@ -9,7 +9,6 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from host.link.batches import TelemetryPlan, plan_for
 from host.link.common import BadIdentity, ControllerRejected, LinkDown, LinkEvent, LinkState
 from host.link.controller import Controller, MotionFailed
 from host.link.reconnect import BackoffConfig
@@ -310,20 +309,4 @@ async def test_heartbeat_period_follows_the_controllers_watchdog() -> None:
         assert ctrl.session.heartbeat_s == pytest.approx(0.02), "never below the configured"
     finally:
         await ctrl.close()
-        await fake.close()
-
-
-async def test_a_links_plan_slows_the_fast_clock_probes_never_enables_them() -> None:
-    fake = FakeController()
-    plan = TelemetryPlan({}, probe_fast_s=0.25)
-    try:
-        ctrl = Controller(fake.wire(), SessionConfig(), telemetry_plan=plan)
-        assert ctrl.session.config.clock_sync_interval_s == 0.25
-        off = Controller(fake.wire(), SessionConfig(clock_sync_interval_s=0), telemetry_plan=plan)
-        assert off.session.config.clock_sync_interval_s == 0, "clock sync stays off"
-        assert SessionConfig().clock_sync_interval_s == 0.1, "the caller's config is not changed"
-        xbee = plan_for("xbee")
-        assert xbee is not None
-        assert xbee.probe_fast_s == 0.25
-    finally:
         await fake.close()
