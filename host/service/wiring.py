@@ -63,16 +63,19 @@ log = logging.getLogger(__name__)
 # (encoder) or 5 B (range) per further one. At the rates below, per second: encoder 100 Hz, age 40
 # ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, ~4 a batch: 612 B; head 10 Hz
 # alone (its 100 ms step exceeds a record's 65 ms): 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) =
-# 90 B. The clock sync's probe pairs cost 2 × (23 + 18) = 82 B per Hz: 4 Hz until the fit converges
-# (host.link.batches.PROBE_FAST_S), then 1 Hz (host.link.probe_rate). The host's HEARTBEAT (13 + 18
-# B) fills its silences every WATCHDOG_MS / 4 (not more often than `heartbeat_ms`, at least every
-# 250 ms): 248 B/s at the default 500 ms watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 124 B/s at a
-# 2 s watchdog. Converged that is 2774 B/s + heartbeats = 63 % + 2.8–5.7 % of the air with ranging;
-# converging, 5.6 % more for ~6 s. The rest carries commands (a full window of 8 MOVE_TO and their
-# ACKs is ~0.6 kB, 0.14 s of air) and MAC retries; tests/service/test_stream_budget.py redoes the
-# sum with the firmware's own batcher. Beyond the air's rate a module's 202-byte buffer overflows
-# and loses replies as often as telemetry; the daemon then sheds telemetry on XBee
-# (`XBEE_SHEDDING`), slowing the streams and lengthening the batch ages together.
+# 90 B. The clock sync's probe pairs cost 2 × (23 + 18) = 82 B per Hz: 10 Hz until the fit
+# converges, then 1 Hz (host.link.probe_rate). The host's HEARTBEAT (13 + 18 B) fills its silences
+# every WATCHDOG_MS / 4 (not more often than `heartbeat_ms`, at least every 250 ms): 248 B/s at the
+# default 500 ms watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 124 B/s at a 2 s watchdog. Converged
+# that is 2774 B/s + heartbeats = 63 % + 2.8–5.7 % of the air with ranging; converging, 17 % more
+# for the first ~20 s (81–86 %), which the modules' buffers ride out at some loss; 4 Hz fast probes
+# would fit the air, but were tried and left the demo's short run with fewer probes in its fit and a
+# clock error no better (worse on most runs, under load). The rest carries commands (a full window
+# of 8 MOVE_TO and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries;
+# tests/service/test_stream_budget.py redoes the sum with the firmware's own batcher. Beyond the
+# air's rate a module's 202-byte buffer overflows and loses replies as often as telemetry; the
+# daemon then sheds telemetry on XBee (`XBEE_SHEDDING`), slowing the streams and lengthening the
+# batch ages together.
 # The price of batching is age. A sample's trip is store-and-forward: controller UART (115200
 # Bd), air, module latency, host UART: ~21 ms for a 35-byte frame, +3.6 ms per further 9-byte
 # record, plus waiting for the air. A batch of n encoder samples at 100 Hz holds its oldest
@@ -85,7 +88,7 @@ log = logging.getLogger(__name__)
 # A controller that does not batch gets the single-sample budget instead
 # (host.link.batches.SINGLE_SAMPLE_RATES_HZ): without ranging 30 × 44 + 10 × 39 + 2 × 45 + 82
 # = 1882 B/s = 43 %, with ranging 25 × 44 + 15 × 36 + 10 × 39 + 2 × 45 + 82 = 50 % (+ heartbeats;
-# fast probes 5.6 % more while converging). The rates' floors: 25 Hz encoder keeps a sample
+# fast probes 17 % more while converging). The rates' floors: 25 Hz encoder keeps a sample
 # within 40 ms of any instant (horizon 50 ms), 10 Hz head within 100 ms (horizon 150 ms); STATUS
 # is also sent on every state change.
 STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
