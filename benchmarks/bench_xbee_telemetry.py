@@ -1,19 +1,20 @@
 """XBee telemetry section of the link benchmark: single samples beside batches, same run.
 
-    python benchmarks/bench_xbee_telemetry.py            # both modes, ~2 × 35 s
+    python benchmarks/bench_xbee_telemetry.py [--modes single batched ages_20_40]  # ~50 s a mode
     python benchmarks/bench_link_transport.py --telemetry  # the same, from the transport bench
 
 The daemon's Controller talks to the firmware mirror and the simulated plant running in real
 time behind the emulated XBee pair (API mode 2, ~35 kbit/s air, 202-byte module buffers), with
 the daemon's XBee rates for the mode: single samples (a host that does not offer batching, at
 `SINGLE_SAMPLE_RATES_HZ`), batched (both offer it, at the batched rates and the link's batch
-ages) and batched_short (the same with shorter ages, `SHORT_AGES_MS`: the latency/air trade). Each
+ages) and `ages_E_R` (the same with other batch ages: the latency/air trade; `--modes`). Each
 mode waits for the steady state (the clock sync's probes slowed down and no shedding; at most
 `SETTLE_MAX_S`, its time printed as `settle_s`), then measures for `MEASURE_S`:
 
 - `<mode>.encoder_hz`, `<mode>.range_hz`: samples that reached the host's buffers per second;
 - `<mode>.air_share`: the air's busy time (every MAC attempt with its overhead, both ways);
-- `<mode>.clock_sync_air_share`: the probes' and replies' part of it;
+- `<mode>.clock_sync_air_share`: the probes' and replies' part of it; `heartbeat_air_share`: the
+  host's heartbeats' (they fill its silences, every WATCHDOG_MS / 4);
 - `<mode>.sample_age_p50_ms` / `_p95_ms` (encoder), `range_age_p95_ms`: host arrival time
   minus the sample's MCU stamp mapped to host time (what the buffers index it by);
 - `<mode>.clock_error_max_us`: the clock mapping against the simulator's true crystal, sampled
@@ -26,6 +27,7 @@ given here; the transport section above has those.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import statistics
 import sys
@@ -47,17 +49,27 @@ from host.service.wiring import XBEE_SHEDDING, stream_rates
 from host.transport import create_transport
 from protocol import encode_frame
 from protocol.enums import Stream
-from protocol.messages import ClockSync, ClockSyncReply
+from protocol.messages import ClockSync, ClockSyncReply, Heartbeat
 
 SETTLE_MAX_S = 60.0  # waits at most this long for the steady state
 MEASURE_S = 20.0
 CLOCK_CHECK_S = 0.5
+HEARTBEAT_AIR_BYTES = len(encode_frame(Heartbeat(0), 0)) + AIR_OVERHEAD_BYTES
 PROBE_PAIR_AIR_BYTES = (
     len(encode_frame(ClockSync(0), 0)) + len(encode_frame(ClockSyncReply(0, 0, 0, 0), 0))
 ) + 2 * AIR_OVERHEAD_BYTES
-MODES = ("single", "batched", "batched_short")
-# The third mode shows the trade-off: batches that wait less (lower age), at more air.
-SHORT_AGES_MS = {Stream.ENCODER: 10, Stream.RANGE: 20, Stream.HEAD: 0}
+# The daemon's two cases, then the trade-off: `ages_E_R` batches encoder samples for at most E ms
+# and range samples for R ms (head alone), at the same rates: shorter ages, younger samples, more
+# air. (At 100 Hz an age between two multiples of 10 ms adds wait and saves no packet.)
+MODES = ("single", "batched", "ages_20_40", "ages_30_60")
+
+
+def plan_of(mode: str) -> TelemetryPlan | None:
+    """The batch ages of a mode (None: the daemon's plan for XBee)."""
+    if not mode.startswith("ages_"):
+        return plan_for("xbee")
+    enc, rng = (int(x) for x in mode.removeprefix("ages_").split("_"))
+    return TelemetryPlan({Stream.ENCODER: enc, Stream.RANGE: rng, Stream.HEAD: 0})
 
 
 class AgeSink:
@@ -106,7 +118,7 @@ def _pct(values: list[float], q: float) -> float:
 async def run_mode(mode: str, tmp: str) -> dict[str, float | int]:
     """One mode's figures."""
     batched = mode != "single"
-    plan = TelemetryPlan(SHORT_AGES_MS) if mode == "batched_short" else plan_for("xbee")
+    plan = plan_of(mode)
     runner = RealtimeRunner(Simulation(Scenario(seed=1)))
     loop = asyncio.get_running_loop()
     module = XBeeModule(SimPortEndpoint(runner.port, loop), 2, link_path=f"{tmp}/xb-{mode}")
@@ -145,6 +157,7 @@ async def _measure(
     """Counters before and after MEASURE_S of streaming, and the clock error meanwhile."""
     stats = ctrl.session.stats
     air0, probes0, lost0 = module.air_bytes, stats.clock_probes, stats.rx_lost
+    beats0 = stats.heartbeats_out
     overflow0 = module.counters.up_overflow + module.counters.down_overflow
     start = time.monotonic()
     sink.recording = True
@@ -158,6 +171,7 @@ async def _measure(
     span = time.monotonic() - start
     air_rate = AIR_RATE_BPS / 8
     probes = stats.clock_probes - probes0
+    beats = stats.heartbeats_out - beats0
     overflow = module.counters.up_overflow + module.counters.down_overflow - overflow0
     return {
         "encoder_hz": len(sink.encoder_ms) / span,
@@ -165,6 +179,7 @@ async def _measure(
         "air_share": (module.air_bytes - air0) / span / air_rate,
         "clock_sync_air_share": probes * PROBE_PAIR_AIR_BYTES / span / air_rate,
         "clock_probe_hz": probes / span,
+        "heartbeat_air_share": beats * HEARTBEAT_AIR_BYTES / span / air_rate,
         "sample_age_p50_ms": statistics.median(sink.encoder_ms) if sink.encoder_ms else 0.0,
         "sample_age_p95_ms": _pct(sink.encoder_ms, 0.95),
         "range_age_p95_ms": _pct(sink.range_ms, 0.95),
@@ -187,9 +202,12 @@ async def section_xbee_telemetry(modes: tuple[str, ...] = MODES) -> dict[str, di
     return out
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     """Run the section on its own."""
-    asyncio.run(section_xbee_telemetry())
+    parser = argparse.ArgumentParser(description="XBee telemetry: single samples beside batches")
+    parser.add_argument("--modes", nargs="*", default=list(MODES), help="single, batched, ages_E_R")
+    args = parser.parse_args(argv)
+    asyncio.run(section_xbee_telemetry(tuple(args.modes)))
     return 0
 
 

@@ -3,8 +3,8 @@
 Unlike `protocol.FrameDecoder`, the receive path keeps the header of a frame whose id or
 payload it cannot decode, because the controller must still NAK it by seq (UNKNOWN_MESSAGE,
 BAD_PAYLOAD). Buffers are fixed-size, as in the C: a frame longer than the largest legal one
-is discarded up to its delimiter and counted, a full TX queue drops telemetry (counted) while
-replies keep a reserve of slots.
+is discarded up to its delimiter and counted; the TX queue sends replies before telemetry, and
+when full drops telemetry (counted) while replies keep a reserve of slots.
 """
 
 from __future__ import annotations
@@ -125,63 +125,84 @@ class RxFramer:
 
 
 class TxQueue:
-    """Outgoing frames, bounded in count; each frame gets the next u16 seq of this direction.
+    """Outgoing frames, bounded in count, replies ahead of telemetry; each frame gets a u16 seq.
 
-    When the link carries less than the streams produce, frames wait here; once the queue is
-    full the oldest waiting telemetry is dropped (its seq spent, so the host counts the loss),
-    never a reply: replies and event STATUS always find a slot (PROTOCOL §14, R-STREAM-1).
+    Two FIFOs, as in the C: replies (ACK/NAK, the answers to HELLO, PARAM_GET and CLOCK_SYNC,
+    event STATUS) and telemetry. `drain` takes replies first, so a reply waits at most behind
+    the one frame already being written, never behind queued batches (PROTOCOL.md §14,
+    R-STREAM-1). A frame's seq is given when it is framed for the wire, so the host still sees
+    the seqs in order. When the link carries less than the streams produce, frames wait here;
+    once the queue is full the oldest waiting telemetry is dropped and its seq spent (the host
+    counts the loss), never a reply: replies always find a slot.
     """
 
-    __slots__ = ("_frames", "counters", "seq")
+    __slots__ = ("_pending", "_replies", "_telemetry", "counters", "seq")
 
     def __init__(self, counters: LinkCounters) -> None:
         self.counters = counters
-        self._frames: deque[tuple[bytes, bool]] = deque()  # (wire bytes, is a reply)
+        self._replies: deque[tuple[object, int, bool]] = deque()  # (message, flags, legacy)
+        self._telemetry: deque[tuple[object, int, bool]] = deque()
+        self._pending: bytes | None = None  # framed (its seq given) but not yet taken by the link
         self.seq = 0
 
     def __len__(self) -> int:
-        return len(self._frames)
+        return len(self._replies) + len(self._telemetry) + (self._pending is not None)
 
     def reset(self) -> None:
         """Empty the queue and restart the seq (controller reset)."""
-        self._frames.clear()
+        self._replies.clear()
+        self._telemetry.clear()
+        self._pending = None
         self.seq = 0
 
     def send(self, msg: object, reply: bool = False, flags: int = 0, legacy: bool = False) -> bool:
-        """Encode and queue a message; False if it was telemetry dropped for room.
+        """Queue a message; False if it was telemetry dropped for room.
 
         `legacy` frames an IDENTIFY as version 1, for a version-1 host's HELLO.
         """
-        seq = self.seq
-        self.seq = (seq + 1) & 0xFFFF
         limit = TX_QUEUE_FRAMES if reply else TX_QUEUE_FRAMES - TX_REPLY_RESERVE_FRAMES
-        if len(self._frames) >= limit and not self._drop_oldest_telemetry() and not reply:
-            self.counters.tx_dropped += 1  # nothing older to drop: this one goes
+        if len(self) >= limit and not self._drop_oldest_telemetry() and not reply:
+            self._spend_dropped()  # nothing older to drop: this one goes
             return False
-        wire = encode_v1(msg, seq, flags) if legacy else encode_frame(msg, seq, flags)
-        self._frames.append((wire, reply))
+        (self._replies if reply else self._telemetry).append((msg, flags, legacy))
         return True
 
     def drain(self, room: int) -> bytes:
-        """The queued frames that fit in `room` bytes, oldest first, as one byte string."""
-        frames = self._frames
+        """The queued frames that fit in `room` bytes, replies first, as one byte string."""
         out: list[bytes] = []
         used = 0
-        while frames and used + len(frames[0][0]) <= room:
-            wire, _ = frames.popleft()
-            out.append(wire)
-            used += len(wire)
+        while True:
+            if self._pending is None:
+                queue = self._replies or self._telemetry
+                if not queue:
+                    break
+                self._pending = self._frame(*queue.popleft())
+            if used + len(self._pending) > room:
+                break  # it goes first next time: its seq is given
+            out.append(self._pending)
+            used += len(self._pending)
+            self._pending = None
         self.counters.frames_out += len(out)
         return b"".join(out)
 
+    def _frame(self, msg: object, flags: int, legacy: bool) -> bytes:
+        """The wire bytes of a message, with the next seq of this direction."""
+        seq = self.seq
+        self.seq = (seq + 1) & 0xFFFF
+        return encode_v1(msg, seq, flags) if legacy else encode_frame(msg, seq, flags)
+
+    def _spend_dropped(self) -> None:
+        """A telemetry frame is dropped: count it and spend its seq, so the host sees a gap."""
+        self.counters.tx_dropped += 1
+        self.seq = (self.seq + 1) & 0xFFFF
+
     def _drop_oldest_telemetry(self) -> bool:
         """Remove the oldest queued telemetry frame; False if every queued frame is a reply."""
-        for i, (_, is_reply) in enumerate(self._frames):
-            if not is_reply:
-                del self._frames[i]
-                self.counters.tx_dropped += 1
-                return True
-        return False
+        if not self._telemetry:
+            return False
+        self._telemetry.popleft()
+        self._spend_dropped()
+        return True
 
 
 class ReplyCache:

@@ -12,6 +12,7 @@ from protocol import DropCounters, NakCode, State
 log = logging.getLogger("host.link")
 E = TypeVar("E", bound=enum.IntEnum)
 F = TypeVar("F", bound=enum.IntFlag)
+UM_PER_MM = 1000.0  # the wire carries µm, the host works in mm
 MAX_UNKNOWN_NOTED = 256  # distinct unknown values logged; beyond that, silence (a flood of noise)
 _unknown_noted: set[tuple[str, int]] = set()
 

@@ -25,6 +25,7 @@ from typing import Any
 
 from host.link.batches import BATCH_TYPES, BatchStats, TelemetryPlan, plan_for, unpack
 from host.link.common import (
+    UM_PER_MM,
     LinkError,
     LinkEvent,
     LinkState,
@@ -42,7 +43,6 @@ from host.link.limits import (
 )
 from host.link.reconnect import BackoffConfig, Supervisor
 from host.link.samples import (
-    UM_PER_MM,
     URAD_PER_RAD,
     EncoderReading,
     HeadReading,
@@ -54,7 +54,7 @@ from host.link.session import SEQ_MOD, Session, SessionConfig
 from host.link.shedding import Shedder, SheddingConfig
 from host.link.snapshot import ControllerChange, Identity, Listener, Snapshot
 from host.transport.base import Transport
-from protocol import Packet
+from protocol import Packet, ParamId
 from protocol.enums import Capability, Fault, Inputs, State, Stream
 from protocol.messages import (
     ClearFault,
@@ -356,6 +356,8 @@ class Controller:
             check_soft_limit(self.track_window, int(param_id), int(value))
         in_force = await self._param(ParamSet(int(param_id), int(value)))
         self._params[int(param_id)] = int(value)
+        if param_id == ParamId.WATCHDOG_MS:
+            self.session.follow_watchdog(in_force)
         return in_force
 
     async def persist_params(self) -> None:
@@ -401,7 +403,14 @@ class Controller:
         if rebooted:
             for pid, value in self._params.items():
                 await self.session.request(ParamSet(pid, value))
+        await self._follow_watchdog()
         await self._sync_soft_limits()
+
+    async def _follow_watchdog(self) -> None:
+        """Heartbeats as often as the controller's watchdog needs (its value may be in flash)."""
+        reply = (await self.session.request(ParamGet(int(ParamId.WATCHDOG_MS)))).message
+        if isinstance(reply, ParamValue):
+            self.session.follow_watchdog(reply.value)
 
     async def _plan_telemetry(self) -> None:
         """Batch ages when both sides batch (longer while shedding), else single-sample rates."""

@@ -13,13 +13,12 @@ import logging
 import math
 from dataclasses import dataclass
 
-from host.link.common import ControllerRejected, OutsideTrack
+from host.link.common import UM_PER_MM, ControllerRejected, OutsideTrack
 from host.link.session import Session
 from protocol import ParamId
 from protocol.messages import ParamGet, ParamSet, ParamValue
 
 log = logging.getLogger(__name__)
-UM_PER_MM = 1000.0
 SOFT_LIMITS = (ParamId.SOFT_LIMIT_MIN_UM, ParamId.SOFT_LIMIT_MAX_UM)
 
 

@@ -12,10 +12,10 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from host.link.clocksync import ClockSync
+from host.link.common import UM_PER_MM
 from host.link.snapshot import Identity
 from protocol.messages import EncoderSample, HeadSample, RangeSample, RefMark
 
-UM_PER_MM = 1000.0
 URAD_PER_RAD = 1_000_000.0
 
 SampleMessage = EncoderSample | HeadSample | RangeSample | RefMark

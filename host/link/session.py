@@ -57,6 +57,8 @@ SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
 HOST_CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in HELLO
 PROBE_ALIGN_MAX_S = 0.1  # a probe waits at most this long for a controller frame to follow
+HEARTBEAT_MAX_S = 0.25  # 4 Hz costs an XBee 2.8 % of its air; 10 Hz cost 7 %
+HEARTBEAT_SLACK_S = 0.002  # a wake-up this close to the heartbeat's time counts as on time
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
 RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
 RTO_ALPHA = 1 / 8
@@ -74,6 +76,10 @@ PacketHandler = Callable[[Packet], None]
 class SessionConfig:
     """Timing of one session; the defaults suit a 115200 Bd serial link or an XBee radio."""
 
+    # The shortest host heartbeat period; once the controller's WATCHDOG_MS is known the host
+    # waits WATCHDOG_MS / 4 when that is longer (PROTOCOL.md §9): on a radio every heartbeat
+    # is a packet of air (31 bytes at 10 Hz: 7 % of an XBee's), and a watchdog of seconds
+    # needs no 10 Hz. It also paces the check for a silent controller.
     heartbeat_interval_s: float = 0.1
     dead_after_heartbeats: int = 10  # silence of this many intervals declares the link dead
     clock_sync_interval_s: float = 0.1  # 10 Hz probes; 0 disables clock sync
@@ -202,6 +208,7 @@ class Session:
         self._running = False
         self._last_rx_s = 0.0
         self._last_tx_s = 0.0
+        self.heartbeat_s = self.config.heartbeat_interval_s  # in force (follow_watchdog)
         self._peer_uptime_ms: int | None = None
         self._started_ns = time.monotonic_ns()
 
@@ -217,6 +224,7 @@ class Session:
         self.transport.resync()
         self._rx_seq = _RxSeq()
         self._running = True
+        self.heartbeat_s = self.config.heartbeat_interval_s  # until this controller's is read
         self._last_rx_s = asyncio.get_running_loop().time()
         self._tasks = [asyncio.create_task(self._heartbeat_loop(), name="link-heartbeat")]
         if self.config.clock_sync_interval_s > 0:
@@ -529,17 +537,28 @@ class Session:
 
     # ---- background ----------------------------------------------------------------------
 
+    def follow_watchdog(self, watchdog_ms: int) -> None:
+        """The controller's WATCHDOG_MS: heartbeat after WATCHDOG_MS / 4 of host silence.
+
+        Any host frame feeds the watchdog, so HEARTBEAT fills only the silences; one or two
+        lost frames still never trip it. Never shorter than the configured interval, nor longer
+        than HEARTBEAT_MAX_S: a long watchdog is slack for a host that stalls, not air to save.
+        """
+        period_s = min(watchdog_ms / 4000, HEARTBEAT_MAX_S)
+        self.heartbeat_s = max(self.config.heartbeat_interval_s, period_s)
+
     async def _heartbeat_loop(self) -> None:
-        """Send HEARTBEAT when idle; declare the link dead after a long silence."""
+        """Send HEARTBEAT when the host was silent; declare the link dead after a long silence."""
         cfg = self.config
         loop = asyncio.get_running_loop()
         while self._running:
-            await asyncio.sleep(cfg.heartbeat_interval_s)
+            due_s = self._last_tx_s + self.heartbeat_s - loop.time()
+            await asyncio.sleep(min(cfg.heartbeat_interval_s, max(due_s, HEARTBEAT_SLACK_S)))
             now = loop.time()
             if now - self._last_rx_s > cfg.heartbeat_interval_s * cfg.dead_after_heartbeats:
                 self._emit(LinkEvent.HEARTBEAT_TIMEOUT, f"silent for {now - self._last_rx_s:.2f} s")
                 return
-            if now - self._last_tx_s >= cfg.heartbeat_interval_s * 0.9:
+            if now - self._last_tx_s >= self.heartbeat_s - HEARTBEAT_SLACK_S:
                 uptime_ms = (time.monotonic_ns() - self._started_ns) // 1_000_000 % U32_MOD
                 self._send_quietly(Heartbeat(uptime_ms=uptime_ms))
                 self.stats.heartbeats_out += 1

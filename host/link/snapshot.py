@@ -11,11 +11,9 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from host.link.common import LinkState, flag_names, label
+from host.link.common import UM_PER_MM, LinkState, flag_names, label
 from protocol.enums import Fault, State
 from protocol.messages import Identify
-
-UM_PER_MM = 1000.0
 
 
 @dataclass(frozen=True)

@@ -55,29 +55,42 @@ log = logging.getLogger(__name__)
 # Telemetry each link carries comfortably (a 115200 Bd UART, a ~35 kbit/s radio, 500 kbit/s CAN),
 # leaving room for commands, their replies and retransmissions.
 #
-# XBee budget. The air carries ~35 kbit/s = 4375 B/s for both directions (one half-duplex
-# channel), and each wire frame is one RF packet with 18 bytes of air overhead. Alone, a sample
-# costs its frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44 B, so 100 Hz of it would nearly fill the
-# air by itself. With batched telemetry (both sides offer it in the handshake) a packet carries a
-# stream's samples of up to its batch age (host.link.batches.BATCH_AGES_MS): its first sample in
-# full, then 9 B (encoder) or 5 B (range) per further one. At the rates below, per second:
-# encoder 100 Hz, age 40 ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, 4 a
-# batch: 12.5 × (33 + 18) = 637 B; head 10 Hz alone (its 100 ms step exceeds a record's 65 ms):
-# 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) = 90 B. The clock sync's probe pairs cost
-# 2 × (23 + 18) = 82 B per Hz: 10 Hz (820 B/s, 19 %) until the fit converges, then 1 Hz
-# (host.link.probe_rate). Converged that is 2799 B/s = 64 % of the air with ranging (encoder and
-# head only: 2162 B/s = 49 %); converging, 3537 B/s = 81 % for the first ~20 s, which the
-# modules' buffers ride out at some loss. The rest carries commands (a full window of 8 MOVE_TO
-# and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries; tests/service/test_stream_budget.py
-# redoes the sum with the firmware's own batcher. Beyond the air's rate a module's 202-byte
-# buffer overflows and loses replies as often as telemetry; the daemon then sheds telemetry on
-# XBee (`XBEE_SHEDDING`), slowing the streams and lengthening the batch ages together. The price
-# of batching is age: an encoder sample waits up to 40 ms for its batch, then ~25 ms on the way.
+# XBee budget. The air carries ~35 kbit/s = 4375 B/s for both directions (one half-duplex channel),
+# and each wire frame is one RF packet with 18 bytes of air overhead. Alone, a sample costs its
+# frame + 18 B: ENCODER_SAMPLE 26 + 18 = 44 B, so 100 Hz of it would nearly fill the air by itself.
+# With batched telemetry (both sides offer it in the handshake) a packet carries a stream's samples
+# of up to its batch age (host.link.batches.BATCH_AGES_MS): its first sample in full, then 9 B
+# (encoder) or 5 B (range) per further one. At the rates below, per second: encoder 100 Hz, age 40
+# ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, ~4 a batch: 612 B; head 10 Hz
+# alone (its 100 ms step exceeds a record's 65 ms): 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) =
+# 90 B. The clock sync's probe pairs cost 2 × (23 + 18) = 82 B per Hz: 10 Hz until the fit
+# converges, then 1 Hz (host.link.probe_rate). The host's HEARTBEAT (13 + 18 B) fills its silences
+# every WATCHDOG_MS / 4 (not more often than `heartbeat_ms`, at least every 250 ms): 248 B/s at the
+# default 500 ms watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 124 B/s at a 2 s watchdog. Converged
+# that is 2774 B/s + heartbeats = 63 % + 2.8–5.7 % of the air with ranging; converging, 17 % more
+# for the first ~20 s (81–86 %), which the modules' buffers ride out at some loss; 4 Hz fast probes
+# would fit the air, but were tried and left the demo's short run with fewer probes in its fit and a
+# clock error no better (worse on most runs, under load). The rest carries commands (a full window
+# of 8 MOVE_TO and their ACKs is ~0.6 kB, 0.14 s of air) and MAC retries;
+# tests/service/test_stream_budget.py redoes the sum with the firmware's own batcher. Beyond the
+# air's rate a module's 202-byte buffer overflows and loses replies as often as telemetry; the
+# daemon then sheds telemetry on XBee (`XBEE_SHEDDING`), slowing the streams and lengthening the
+# batch ages together.
+# The price of batching is age. A sample's trip is store-and-forward: controller UART (115200
+# Bd), air, module latency, host UART: ~21 ms for a 35-byte frame, +3.6 ms per further 9-byte
+# record, plus waiting for the air. A batch of n encoder samples at 100 Hz holds its oldest
+# (n − 1) × 10 ms, so the p95 age is about (n − 1) × 10 ms + the trip: 75 ms at age 40 (n = 5),
+# ~57 ms at age 30, ~47 ms at age 20 (80 % of the air). A p95 within 40 ms needs n ≤ 2, i.e.
+# 50 encoder packets a second, 2650 B/s of air for the encoder alone and ~97 % with the other
+# streams: this radio cannot carry 100 + 50 Hz that young (benchmarks/bench_xbee_telemetry.py
+# measures the trade, `--modes ages_E_R`). Ages are multiples of the sample period: one between
+# two adds wait and saves no packet.
 # A controller that does not batch gets the single-sample budget instead
-# (host.link.batches.SINGLE_SAMPLE_RATES_HZ): without ranging 30 × 44 + 10 × 39 + 2 × 45 + 820
-# = 2620 B/s = 60 %, with ranging 25 × 44 + 15 × 36 + 10 × 39 + 2 × 45 + 820 = 67 %. The
-# rates' floors: 25 Hz encoder keeps a sample within 40 ms of any instant (horizon 50 ms), 10 Hz
-# head within 100 ms (horizon 150 ms); STATUS is also sent on every state change.
+# (host.link.batches.SINGLE_SAMPLE_RATES_HZ): without ranging 30 × 44 + 10 × 39 + 2 × 45 + 82
+# = 1882 B/s = 43 %, with ranging 25 × 44 + 15 × 36 + 10 × 39 + 2 × 45 + 82 = 50 % (+ heartbeats;
+# fast probes 17 % more while converging). The rates' floors: 25 Hz encoder keeps a sample
+# within 40 ms of any instant (horizon 50 ms), 10 Hz head within 100 ms (horizon 150 ms); STATUS
+# is also sent on every state change.
 STREAM_RATES_HZ: dict[str, dict[Stream, int]] = {
     "serial": {Stream.ENCODER: 200, Stream.HEAD: 50, Stream.STATUS: 20},
     "xbee": {Stream.ENCODER: 100, Stream.HEAD: 10, Stream.STATUS: 2},

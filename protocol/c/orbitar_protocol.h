@@ -8,6 +8,13 @@
  * raw   = version u8 | flags u8 | seq u16 LE | msg_id u8 | payload | crc16 BE
  * Payload fields are little-endian and packed; encode/decode use byte shifts only, so the
  * code is independent of the target's endianness and alignment.
+ *
+ * Transmit side (PROTOCOL.md section 14, R-STREAM-1): keep two TX queues, replies (ACK, NAK,
+ * IDENTIFY, PARAM_VALUE, CLOCK_SYNC_REPLY, the STATUS sent on a state change) and telemetry
+ * (samples, batches, REF_MARK, HEARTBEAT). Frame the next one only when the UART/DMA or radio
+ * module has room, replies first, and give the seq when framing, so a reply waits at most
+ * behind the frame being written and the seqs leave in order. A full queue drops its oldest
+ * telemetry and still spends that frame's seq, so the host counts the loss.
  */
 #ifndef ORBITAR_PROTOCOL_H
 #define ORBITAR_PROTOCOL_H

@@ -75,3 +75,17 @@ def test_tx_queue_sends_no_more_than_the_link_takes() -> None:
     frame = len(tx.drain(30))
     assert frame == 26, "one 26-byte frame fits in 30 bytes, two do not"
     assert len(tx) == 4
+
+
+def test_tx_queue_sends_replies_before_queued_telemetry_with_seqs_in_order() -> None:
+    # A reply (ACK/NAK) never waits behind telemetry: at most behind the frame being written.
+    tx = TxQueue(LinkCounters())
+    for t in range(4):
+        tx.send(EncoderSample(t, 0, 0, 0, 0))
+    first = FrameDecoder().feed(tx.drain(30))  # one 26-byte sample goes, the next is framed
+    tx.send(Ack(7, 1), reply=True)
+    rest = FrameDecoder().feed(tx.drain(1 << 20))
+    kinds = [type(p.message).__name__ for p in first + rest]
+    assert kinds == ["EncoderSample"] * 2 + ["Ack"] + ["EncoderSample"] * 2, kinds
+    assert [p.seq for p in first + rest] == list(range(5)), "seqs in wire order, no gap"
+    assert len(tx) == 0

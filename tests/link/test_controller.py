@@ -14,7 +14,7 @@ from host.link.controller import Controller, MotionFailed
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
 from host.link.shedding import SheddingConfig
-from protocol import PROTOCOL_VERSION, SCHEMA, cobs
+from protocol import PROTOCOL_VERSION, SCHEMA, ParamId, cobs
 from protocol.crc import frame_crc
 from protocol.enums import NakCode, State, Stream
 from protocol.messages import MoveTo, Status, StreamSet
@@ -282,6 +282,31 @@ async def test_start_retries_an_absent_device_and_pushes_each_change_with_its_ca
         await asyncio.sleep(0.01)
         assert changes[-1][:2] == ("state", "up")  # pushed as it arrived
         assert ctrl.snapshot()["state"] == "MOVING"
+    finally:
+        await ctrl.close()
+        await fake.close()
+
+
+async def test_heartbeat_period_follows_the_controllers_watchdog() -> None:
+    # PROTOCOL §9: HEARTBEAT after WATCHDOG_MS / 4 of host silence, read from the controller at
+    # connect (it may be in flash) and followed when set; never below the configured interval.
+    fake = FakeController()
+    fake.params[int(ParamId.WATCHDOG_MS)] = 400
+    cfg = SessionConfig(
+        heartbeat_interval_s=0.02, dead_after_heartbeats=100, clock_sync_interval_s=0
+    )
+    ctrl = Controller(fake.wire(), cfg, BACKOFF, seed=1)
+    await ctrl.connect()
+    try:
+        assert ctrl.session.heartbeat_s == pytest.approx(0.1)
+        out0 = ctrl.session.stats.heartbeats_out
+        await asyncio.sleep(0.55)
+        sent = ctrl.session.stats.heartbeats_out - out0
+        assert 4 <= sent <= 6, f"{sent} heartbeats in 0.55 s at a 0.1 s period"
+        await ctrl.set_param(ParamId.WATCHDOG_MS, 10_000)
+        assert ctrl.session.heartbeat_s == pytest.approx(0.25), "a long watchdog is slack"
+        await ctrl.set_param(ParamId.WATCHDOG_MS, 40)
+        assert ctrl.session.heartbeat_s == pytest.approx(0.02), "never below the configured"
     finally:
         await ctrl.close()
         await fake.close()

@@ -17,9 +17,16 @@ from hil_sim.links.xbee import AIR_OVERHEAD_BYTES, AIR_RATE_BPS
 from host.link.batches import BATCH_AGES_MS
 from host.link.session import SessionConfig
 from host.service.wiring import stream_rates
-from protocol import encode_frame
+from protocol import PARAMS_BY_ID, ParamId, encode_frame
 from protocol.enums import Stream
-from protocol.messages import ClockSync, ClockSyncReply, EncoderSample, HeadSample, RangeSample
+from protocol.messages import (
+    ClockSync,
+    ClockSyncReply,
+    EncoderSample,
+    HeadSample,
+    Heartbeat,
+    RangeSample,
+)
 from protocol.messages import Status as StatusMsg
 
 MAX_SHARE = 0.70  # the rest is for commands, their replies, retransmissions and MAC retries
@@ -32,6 +39,8 @@ SAMPLES = {
 PROBE_HZ = 1.0 / SessionConfig().clock_sync_interval_s
 CONVERGED_PROBE_HZ = 1.0 / SessionConfig().clock_sync_slow_interval_s
 TICK_US = 1_000
+# The host's heartbeats fill its silences every WATCHDOG_MS / 4 (PROTOCOL.md §9), at the default.
+HEARTBEAT_HZ = 4000 / PARAMS_BY_ID[ParamId.WATCHDOG_MS].default
 
 
 def _sample(stream: Stream, t_us: int, i: int) -> Sample:
@@ -82,6 +91,7 @@ def test_xbee_batched_streams_leave_a_third_of_the_air(ranging: bool) -> None:
         for stream, rate in rates.items()
     )
     load += CONVERGED_PROBE_HZ * _probe_pair(AIR_OVERHEAD_BYTES)
+    load += HEARTBEAT_HZ * (_frame(build(Heartbeat, 0)) + AIR_OVERHEAD_BYTES)
     share = load / (AIR_RATE_BPS / 8)
     assert share <= MAX_SHARE, f"XBee streams take {share:.0%} of the air"
     assert rates[Stream.ENCODER] >= 100
