@@ -22,7 +22,8 @@ from host.config_ui import UiConfig
 from host.geometry.head import Rig
 from host.station.render import ViewInput
 from tests.commissioning.simrig import BOARD, BOARD_CENTRE_W, STATIONS_MM, Harness, sim_daemon
-from tests.station.conftest import ARTIFACTS, OPERATOR_TOKEN, VIEWER_TOKEN, dump, free_port
+from tests.hil_rig import free_port
+from tests.station.conftest import ARTIFACTS, OPERATOR_TOKEN, VIEWER_TOKEN, dump
 
 FAST_MM_S = 1500.0  # between stations, as tests/commissioning does
 
