@@ -91,12 +91,16 @@ def calibrate_handeye(
     T_w_b: ArrayLike | None = None,
     cov_T_w_b: ArrayLike | None = None,
     camera_cov: ArrayLike | None = None,
+    home_sigma_mm: float = 0.0,
 ) -> HandEyeResult:
     """Solve M_cr and T_w_track; T_w_b is the target's surveyed world pose (default: world = b).
 
     `camera_cov` (10×10 over CAMERA_KEYS, e.g. from the intrinsics calibration) adds the
     camera's own uncertainty to the result's: a focal length off by 0.1 % moves the camera by
-    0.1 % of the board distance, far more than the pixel noise does.
+    0.1 % of the board distance, far more than the pixel noise does. `home_sigma_mm` (the σ of
+    the controller's zero the views' arc lengths were computed with) adds that of the arc
+    lengths: on a straight a home error and a shift of the track along it are one and the same,
+    so the fit puts the home's error into the track placement.
     """
     if len(views) < MIN_VIEWS:
         raise ValueError(f"need at least {MIN_VIEWS} views, got {len(views)}")
@@ -112,6 +116,8 @@ def calibrate_handeye(
     cov = lsq.covariance(J, r)  # linearised at the solution, in its own local frame
     if camera_cov is not None:
         cov = cov + _camera_term(problem, M_cr, T_b_k, J, np.asarray(camera_cov, dtype=np.float64))
+    if home_sigma_mm > 0.0:
+        cov = cov + _home_term(views, track, mount, problem, M_cr, T_b_k, J, home_sigma_mm)
     rot_res, trans_res = _pose_residuals(M_cr, T_b_k, T_k_r, T_c_b)
     T_wb = np.eye(4) if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
     cov_wb = np.zeros((6, 6)) if cov_T_w_b is None else np.asarray(cov_T_w_b, dtype=np.float64)
@@ -144,6 +150,23 @@ def _camera_term(
     problem.camera = base
     A = -np.linalg.pinv(J.T @ J) @ J.T @ J_theta
     out: FloatArray = A @ cam_cov @ A.T
+    return out
+
+
+def _home_term(
+    views: Sequence[HandEyeView], track: Track, mount: FloatArray, problem: _Problem,
+    M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray, sigma_mm: float,
+) -> FloatArray:  # fmt: skip
+    """Covariance a common error of every view's arc length (the home's) adds."""
+    step = 1.0
+    shifted = [
+        track.local_pose(v.s_mm + step) @ mount @ head_rotation(v.pan_rad, v.tilt_rad)
+        for v in views
+    ]
+    moved = _Problem(views, shifted, problem.camera)
+    J_s = (moved.residuals(M_cr, T_b_k) - problem.residuals(M_cr, T_b_k)) / step
+    A = -np.linalg.pinv(J.T @ J) @ J.T @ J_s
+    out: FloatArray = sigma_mm**2 * np.outer(A, A)
     return out
 
 

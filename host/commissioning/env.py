@@ -85,6 +85,7 @@ class CommissioningEnv:
     latency_ms: Callable[[], float] = _no_home  # the exposure latency the pose source applies
     # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
     after_write: Callable[[], Awaitable[Any]] | None = None
+    spec: Callable[[], RigSpec] = RigSpec  # the rig description as it stands (σ, workpiece)
 
     _budget_cache: tuple[tuple[float, float, float], float, float | None] | None = field(
         default=None, init=False, repr=False
@@ -159,7 +160,7 @@ class CommissioningEnv:
             return build_scene(load())
 
         return cls(frames, kinematics, path, report_root, home_s_mm=home, camera_cov=camera_cov,
-                   budget=budget, latency_ms=latency, scene=scene)  # fmt: skip
+                   budget=budget, latency_ms=latency, scene=scene, spec=load)  # fmt: skip
 
     @classmethod
     def for_rig_file(

@@ -123,6 +123,7 @@ def judge_head(
     cov_T_w_b: FloatArray,
     limits: HeadThresholds,
     camera_cov: FloatArray | None = None,
+    home_sigma_mm: float = 0.0,
 ) -> HeadOutcome:  # fmt: skip
     """Solve M_cr and the track placement from the kept views, and judge them."""
     obs = hand_eye_views(views)
@@ -135,7 +136,9 @@ def judge_head(
         )
         return HeadOutcome(False, [why], views, None, *nominal)
     try:
-        res = calibrate_handeye(obs, rig.track, camera, rig.T_t_r, T_w_b, cov_T_w_b, camera_cov)
+        res = calibrate_handeye(
+            obs, rig.track, camera, rig.T_t_r, T_w_b, cov_T_w_b, camera_cov, home_sigma_mm
+        )
     except (ValueError, np.linalg.LinAlgError) as exc:
         return HeadOutcome(False, [f"the solve failed: {exc}"], views, None, *nominal)
     bad = []

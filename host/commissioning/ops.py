@@ -18,7 +18,14 @@ from typing import Any
 import numpy as np
 
 from host.calibration.board import BoardDetector, BoardSpec
-from host.commissioning import head_run, home_run, intrinsics_run, latency_run, survey_run
+from host.commissioning import (
+    head_run,
+    home_run,
+    intrinsics_run,
+    latency_run,
+    survey_run,
+    targets_run,
+)
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import JobBusyError, Progress
@@ -26,7 +33,7 @@ from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
 from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
 from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
-from host.geometry.transforms import FloatArray
+from host.geometry.transforms import FloatArray, transform_points
 from host.rig import update_rig
 
 MAX_STATIONS = 64
@@ -188,8 +195,10 @@ async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     def finish(
         views: list[Any], rig: Any, camera: Any
     ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        env = env_of(ctx)
+        home_sigma = float(env.spec().track.home.sigma)  # the views' arc lengths carry it
         out = head_run.judge_head(
-            views, rig, camera, T_w_b, cov_b, limits, env_of(ctx).camera_cov()
+            views, rig, camera, T_w_b, cov_b, limits, env.camera_cov(), home_sigma
         )
         updates = head_run.head_rig_update(out, True) if out.passed else {}
         return out.summary(), head_run.head_page(out, limits), updates
@@ -297,8 +306,14 @@ def aims(args: Mapping[str, Any]) -> list[ViewTarget]:
 
 
 async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
-    """Start a workpiece survey: aims, optional model_points_mm, samples, noise_mm, write."""
+    """Start a workpiece survey: aims, optional model_points_mm, samples, noise_mm, write;
+    or with method "camera": model_points_mm (the targets' model coordinates), stations_mm."""
     env = env_of(ctx)
+    method = args.get("method", "rangefinder")
+    if method == "camera":
+        return _survey_workpiece_camera(ctx, args, env)
+    if method != "rangefinder":
+        raise OpError("bad_args", f"method = {method!r}: expected 'rangefinder' or 'camera'")
     targets = aims(args)
     model = args.get("model_points_mm")
     model_p = None
@@ -346,6 +361,67 @@ async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     return {"job": job.id, "kind": job.kind}
 
 
+def _survey_workpiece_camera(
+    ctx: OpContext, args: Mapping[str, Any], env: CommissioningEnv
+) -> dict[str, Any]:
+    """Start the camera survey: targets on the model's points, seen from several stations."""
+    model = args.get("model_points_mm")
+    model_p = np.array(model, dtype=np.float64) if isinstance(model, list) else np.zeros(0)
+    if model_p.ndim != 2 or model_p.shape[1:] != (3,) or not 3 <= len(model_p) <= MAX_STATIONS:
+        raise OpError("bad_args", "model_points_mm: expected 3-64 finite [x, y, z] (mm)")
+    if not np.isfinite(model_p).all():
+        raise OpError("bad_args", "model_points_mm: expected 3-64 finite [x, y, z] (mm)")
+    where = stations(args, ctx)
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None:
+        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
+    controller = ctx.controller
+    head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        tap = env.frames()
+        if tap is None:
+            raise AbortedError("the camera went away")
+        rig, camera = env.kinematics()
+        spec = env.spec()
+        rough = spec.workpiece.frame.matrix  # the drawing's: only to predict where to look
+        points_w = transform_points(rough, model_p)
+        views = targets_run.plan_views(rig, camera, points_w, where, head_limits)
+        progress["planned"] = len(views)
+        if not views:
+            raise AbortedError("no view of the targets can be planned from these stations")
+        io = RigIO(controller, tap, home_s_mm=env.home_s_mm())
+        views = await targets_run.capture(io, views, rig, camera, points_w, progress)
+        progress["phase"] = "solving"
+        placement = spec.track.placement
+        track_cov = (
+            np.array(placement.covariance, dtype=np.float64)
+            if placement.covariance is not None
+            else np.diag(np.square([*placement.sigma_rad, *placement.sigma_mm]))
+        )
+        out = await asyncio.to_thread(targets_run.judge, views, rig, camera, model_p, track_cov)
+        report = await asyncio.to_thread(
+            _write, env.report_root, "workpiece", targets_run.page(out)
+        )
+        written = None
+        if out.passed and bool(args.get("write", True)) and env.rig_path is not None:
+            progress["phase"] = "writing"
+            update = targets_run.workpiece_update(out)
+            await asyncio.to_thread(update_rig, env.rig_path, update, "survey workpiece (camera)")
+            written = str(env.rig_path)
+            if env.after_write is not None:
+                await env.after_write()
+        progress["phase"] = "done"
+        return {**out.summary(), "report": report, "written": written, "rig_file": _path(env)}
+
+    try:
+        job = env.jobs.start("workpiece", run)
+    except JobBusyError as exc:
+        raise OpError("busy", str(exc)) from exc
+    return {"job": job.id, "kind": job.kind}
+
+
 async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Start a home survey: pan_rad, tilt_rad aiming the beam at an end wall; samples."""
     env = env_of(ctx)
@@ -356,6 +432,9 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         raise OpError("bad_args", f"samples = {samples!r}: expected an integer in [1, 500]")
     noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
     wall = number({"wall_sigma_mm": 1.0, **args}, "wall_sigma_mm", 0.0, 100.0)
+    # how far the rig file may put the beam's origin along the beam (the client's to give)
+    rig_sigma = number({"rig_sigma_mm": 0.0, **args}, "rig_sigma_mm", 0.0, 100.0)
+    max_sigma = number({"max_sigma_mm": home_run.MAX_SIGMA_MM, **args}, "max_sigma_mm", 0.01, 100.0)
     if ctx.controller is None or not ctx.controller.connected:
         raise OpError("unavailable", "the controller link is not up")
     tap = env.ranges() if env.ranges is not None else None
@@ -370,7 +449,7 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         rig, _ = env.kinematics()
         io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
         result = await home_run.survey_home(
-            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress
+            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress, rig_sigma, max_sigma
         )
         report = await asyncio.to_thread(
             _write, env.report_root, "home", home_run.home_page(result)

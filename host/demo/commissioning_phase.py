@@ -1,11 +1,13 @@
 """The demo's commissioning: an installer's session on the simulated rig, through the daemon.
 
 What the installer does, in order: place a ChArUco board on a stand under the track and survey
-its pose (1 mm, 1 mrad), home the trolley and survey where the controller's zero is (1 mm), then
-run `calibrate_intrinsics`, `calibrate_head` and `calibrate_check` against the running daemon's
-control socket (cal11's operations, `host.commissioning.client`). Each passing step writes the
-rig file the daemon reads; the experiments then load it. The board's true pose, the true zero
-and the true lens stay in the simulator: the daemon's camera renders them, nothing else does.
+its pose (1 mm, 1 mrad), stick photogrammetry targets on the workpiece's feature points, home
+the trolley, then run the commissioning plan against the running daemon's control socket
+(`host.commissioning.client`): survey home, calibrate intrinsics, head and latency, survey the
+workpiece with the camera, and the acceptance check. Each passing step writes the rig file the
+daemon reads; the experiments then load it. The board's true pose, the true zero, the true
+workpiece and the true lens stay in the simulator: the daemon's camera renders them and its
+rangefinder reads the true walls, nothing else does.
 """
 
 from __future__ import annotations
@@ -19,16 +21,16 @@ from typing import Any
 import numpy as np
 
 from hil_sim.camera import PlacedBoard
-from hil_sim.runner import Simulation
 from host.calibration.board import BoardSpec
 from host.commissioning.client import CommissioningPlan, RunFailedError, commission
 from host.control.client import ControlClient
 from host.demo.daemon_phase import RunningDaemon
+from host.demo.experiments import DEMO_WATCHDOG_MS, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD
 from host.demo.rigs import DemoRigs
 from host.demo.world import SimWorld
 from host.geometry.transforms import FloatArray, euler_zyx, make_T, rot_x, rotvec_to_R
-from host.rig import Provenance, Scalar, update_rig
-from host.rig.schema import SURVEY_SIGMA_MM
+from host.rig import RigSpec
+from host.station.parts import load_parts, sidecar_path
 from protocol.enums import Inputs
 
 BOARD = BoardSpec(squares_x=8, squares_y=6, square_mm=70.0, marker_mm=52.0)
@@ -40,12 +42,14 @@ BOARD_SURVEY_SIGMA_MM = 1.0
 BOARD_SURVEY_SIGMA_RAD = 1e-3
 STATION_SPACING_MM = 1000.0  # intrinsics and head views from the board's station and around it
 CHECK_OFFSET_MM = 500.0  # the acceptance test looks from stations not used to calibrate
-RING_DOWN_S = 0.5  # after homing, before the zero is surveyed (the rotor rings ~0.2 s)
+# the workpiece survey's stations, from the power-on position (the static observation points
+# are at 0 and 300 mm, the full demo's last at 2000 mm): rays across the workpiece
+WORKPIECE_STATIONS_MM = (-700.0, 150.0, 1000.0)
+MIN_TARGETS = 3
+FIRST_HOME_MAX_SIGMA_MM = 10.0  # the first zero, before the head is calibrated
 READY_TIMEOUT_S = 60.0
 POLL_S = 0.5  # status computes the error budget: do not load the daemon's loop with it
-UM_PER_MM = 1000.0
 HOMED = int(Inputs.HOMED)
-ZERO_SURVEY_SALT = 0x2E80
 
 
 @dataclass(frozen=True)
@@ -75,19 +79,10 @@ def place_board(rigs: DemoRigs, seed: int) -> BoardSetup:
     return BoardSetup(PlacedBoard(BOARD.make(), T_true), surveyed, s)
 
 
-def survey_zero(world: SimWorld, seed: int) -> float:
-    """Where the controller's zero sits on the track, as a 1 mm survey finds it (trolley still).
-
-    The surveyor reads the standing trolley's position and the controller's at the same moment:
-    here the plant's true arc length and the firmware's, under the simulator's lock.
-    """
-
-    def simultaneous(sim: Simulation) -> float:
-        return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
-
-    true_zero = float(world.with_truth(simultaneous))
-    rng = np.random.default_rng([seed, ZERO_SURVEY_SALT])
-    return true_zero + float(rng.normal(0.0, SURVEY_SIGMA_MM))
+def feature_points(spec: RigSpec) -> FloatArray:
+    """The model's feature points (its sidecar's P1..Pn, model frame), where targets are stuck."""
+    parts = load_parts(sidecar_path(spec.workpiece.model))
+    return np.array([p.position_mm for p in parts.points], dtype=np.float64).reshape(-1, 3)
 
 
 def make_commissioner(
@@ -99,17 +94,12 @@ def make_commissioner(
         client = await ControlClient.connect_unix(str(daemon.socket_path))
         async with client:
             await _wait(client, lambda s: bool(s.get("link_up")), "link up")
+            # One process runs simulator, daemon and rendering on a shared machine: give the
+            # controller's watchdog the slack the experiments have too (PROTOCOL.md §9).
+            await client.request("param_set", param="WATCHDOG_MS", value=DEMO_WATCHDOG_MS)
             log("commissioning: homing")
             await client.request("home")
             await _wait(client, _ready_and_homed, "homed")
-            await asyncio.sleep(RING_DOWN_S)
-            home = survey_zero(world, seed)
-            update_rig(
-                daemon.rig_path,
-                {"track.home": Scalar(home, SURVEY_SIGMA_MM, Provenance.now("survey (tape)"))},
-                "survey home",
-            )
-            await daemon.reload()
             plan = commissioning_plan(rigs, setup)
             t0 = time.monotonic()
             error = ""
@@ -121,7 +111,6 @@ def make_commissioner(
                 log(f"commissioning: {error}")
                 steps = []
         return {
-            "home_survey_mm": home,
             "board_s_mm": setup.s_mm,
             "duration_s": time.monotonic() - t0,
             "steps": [{"op": op, **_plain(result)} for op, result in steps],
@@ -133,7 +122,15 @@ def make_commissioner(
 
 
 def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
-    """Intrinsics around the board, head from three stations, the check from two others."""
+    """The installer's steps, in order, each through the daemon's control socket.
+
+    The home first, by the rangefinder on the end wall ahead (σ from the drawing's rig: the
+    beam's origin is only known that well until the head is calibrated); intrinsics around the
+    board; the head from three stations (the home's σ goes into the track's); the latency from
+    passes past the board; the workpiece by the camera, targets on its feature points
+    triangulated through the calibrated rig from stations around where it is watched; last the
+    acceptance test from two stations not used to calibrate.
+    """
     lo, hi = rigs.travel_mm()
 
     def within(values: list[float]) -> list[float]:
@@ -142,16 +139,34 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
     s = setup.s_mm
     stations = within([s - STATION_SPACING_MM, s, s + STATION_SPACING_MM])
     check = within([s - CHECK_OFFSET_MM, s + CHECK_OFFSET_MM])
+    start = rigs.start_s_mm()
+    survey_at = within([start + d for d in WORKPIECE_STATIONS_MM])
     board = BOARD.to_dict()
     pose = setup.T_w_b_surveyed.tolist()
     centre = (setup.T_w_b_surveyed @ np.append(BOARD.centre_mm, 1.0))[:3].tolist()
     sigma = {"board_sigma_mm": BOARD_SURVEY_SIGMA_MM, "board_sigma_rad": BOARD_SURVEY_SIGMA_RAD}
-    return (
+    nominal = rigs.host
+    beam_origin = float(
+        np.hypot(max(nominal.track.placement.sigma_mm), max(nominal.rangefinder.mount.sigma_mm))
+    )
+    plan = (
         CommissioningPlan()
+        .add(
+            "survey_home", pan_rad=LOOK_AHEAD_PAN_RAD, tilt_rad=LOOK_AHEAD_TILT_RAD,
+            noise_mm=nominal.rangefinder.noise_mm, rig_sigma_mm=beam_origin,
+            max_sigma_mm=FIRST_HOME_MAX_SIGMA_MM,
+        )
         .intrinsics(centre, stations, board=board)
         .add("calibrate_head", board_pose=pose, board=board, stations_mm=stations, **sigma)
-        .add("calibrate_check", board_pose=pose, board=board, stations_mm=check)
-    )
+        .add("calibrate_latency", board_pose=pose, board=board, station_mm=s)
+    )  # fmt: skip
+    points = feature_points(nominal)
+    if len(points) >= MIN_TARGETS:
+        plan.add(
+            "survey_workpiece", method="camera", model_points_mm=points.tolist(),
+            stations_mm=survey_at,
+        )  # fmt: skip
+    return plan.add("calibrate_check", board_pose=pose, board=board, stations_mm=check)
 
 
 def _ready_and_homed(status: dict[str, Any]) -> bool:

@@ -19,6 +19,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from hil_sim.runner import Simulation
+from host.commissioning import home_run
+from host.commissioning.frames import FrameTap, RangeTap
+from host.commissioning.motion import RigIO
 from host.demo.feeds import TrackFeed
 from host.demo.scoring import PROBE_DEPTH_MM, Score, aimed_errors, centre_error, summary
 from host.demo.world import SceneTruth, SimWorld
@@ -27,8 +30,9 @@ from host.frames.sources import Frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import Wireframe
+from host.geometry.rangefinder import RangeScene
 from host.geometry.transforms import make_T
-from host.link import Controller
+from host.link import Controller, LinkError
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
 from protocol import ParamId
@@ -63,7 +67,8 @@ STILL_POLL_S = 0.01
 STILL_TIMEOUT_S = 3.0
 UM_PER_MM = 1000.0
 STATUS_WAIT_S = 0.3  # STATUS streams at 2-20 Hz and is sent on every state change
-SURVEY_SALT = 0x5A11  # the simulated surveys' noise stream, apart from the plant's
+FAULT_CLEAR_TRIES = 3
+HOME_SURVEY_SAMPLES = 20
 
 
 @dataclass(frozen=True)
@@ -164,17 +169,15 @@ class Bench:
     truth: Truth
     home_switch_s_mm: float  # where the drawing puts the home switch (the host's rig file)
     latency_ns: int = 0
-    home_survey_sigma_mm: float = 0.0
-    survey_seed: int = 0
-    survey_rng: np.random.Generator = field(init=False)
+    home_survey_sigma_mm: float = 0.0  # the walls' survey σ (the home survey's σ)
+    ranges: RangeTap | None = None  # the controller's rangefinder readings (home survey)
+    scene: RangeScene | None = None  # the host's surveyed walls
+    range_noise_mm: float = 1.0
     # the error budget's predicted overlay σ (px) of the model's centre at (s, pan, tilt)
     predicted_px: Callable[[float, float, float], float] | None = None
     home_truth_mm: float | None = None  # true arc length of the zero (scoring only)
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
-
-    def __post_init__(self) -> None:
-        self.survey_rng = np.random.default_rng([self.survey_seed, SURVEY_SALT])
 
     def registrars(self) -> tuple[Registrar, Registrar]:
         """Encoder-only (draws the overlay) and fused (scored only)."""
@@ -230,16 +233,20 @@ async def start_host(bench: Bench, link: str) -> list[str]:
     an operator.
     """
     await bench.ctrl.set_streams(STREAM_RATES_HZ[link])
-    await asyncio.sleep(STATUS_WAIT_S)  # a STATUS has arrived: the snapshot is current
-    snap = bench.ctrl.snapshot()
-    cleared: list[str] = []
-    if snap.state is State.FAULT and snap.faults == Fault.WATCHDOG:
-        await bench.ctrl.clear_fault()
-        cleared.append("WATCHDOG")
     # The demo runs simulator, registration and host in one process on a shared machine, so
     # its loop can stall past the default 500 ms; the watchdog faults a standing controller
     # too (PROTOCOL.md §9), so give it the slack a real host on its own machine does not need.
     await bench.ctrl.set_param(ParamId.WATCHDOG_MS, DEMO_WATCHDOG_MS)
+    cleared: list[str] = []
+    for _ in range(FAULT_CLEAR_TRIES):
+        await asyncio.sleep(STATUS_WAIT_S)  # a STATUS has arrived: the snapshot is current
+        snap = bench.ctrl.snapshot()
+        if snap.state is not State.FAULT:
+            break
+        if snap.faults != Fault.WATCHDOG:
+            break  # any other fault stops the run at homing, as it would stop an operator
+        await bench.ctrl.clear_fault()
+        cleared.append("WATCHDOG")
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
     return cleared
@@ -265,25 +272,34 @@ async def wait_still(bench: Bench) -> None:
         await asyncio.sleep(STILL_POLL_S)
 
 
-async def survey_home(bench: Bench, world: SimWorld) -> float:
-    """Track position of the controller's zero, as a survey at installation would give it.
+async def survey_home(bench: Bench) -> float:
+    """Track position of the controller's zero: the daemon's `survey home` measurement.
 
-    The surveyor measures the standing trolley and reads the controller's position at that same
-    moment: here, the plant's true arc length and the firmware's encoder position, read together
-    under the simulator's lock once the trolley has stopped ringing. (Comparing the truth now
-    with the host's last, older position sample put the ring-down into the survey: a constant
-    offset of up to ~1 mm for the whole run, different from run to run.)
+    The trolley stands still (the rotor's ring-down would be read into the survey), the head
+    turns the rangefinder along the track at the end wall ahead, and the readings are solved for
+    the arc length through the host's rig and surveyed walls (host.commissioning.home_run).
     """
+    if bench.ranges is None or bench.scene is None:
+        raise LinkError("no rangefinder or no surveyed walls: the zero cannot be surveyed")
     await wait_still(bench)
+    io = RigIO(bench.ctrl, FrameTap(_NoCamera()), home_s_mm=bench.feed.home_s_mm)
+    result = await home_run.survey_home(
+        io, bench.ranges, bench.rig, bench.scene, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD,
+        HOME_SURVEY_SAMPLES, bench.range_noise_mm, bench.home_survey_sigma_mm, {},
+    )  # fmt: skip
+    if not result["passed"]:
+        raise LinkError(f"the home survey failed: {'; '.join(result['reasons'])}")
+    return float(result["home_mm"])
 
-    def simultaneous(sim: Simulation) -> float:
-        return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
 
-    surveyed = float(world.with_truth(simultaneous))
-    bench.home_truth_mm = surveyed  # scoring only
-    if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, a new draw each time
-        surveyed += float(bench.survey_rng.normal(0.0, bench.home_survey_sigma_mm))
-    return surveyed
+class _NoCamera:
+    """The survey needs no frames."""
+
+    def read(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
 
 
 async def static_experiment(
@@ -367,7 +383,10 @@ async def drift_experiment(
     await bench.move(bench.home_switch_s_mm + HOMING_RUN_UP_MM, plan.travel_speed_mm_s)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
-    bench.feed.set_home(await survey_home(bench, world))
+    # The same switch and sprocket index give the same zero (a stretched chain moves it by the
+    # stretch of the few mm between them): the home surveyed before holds.
+    bench.feed.set_home(bench.feed.home_s_mm)
+    await wait_still(bench)
     await bench.point_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)
     start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
     marks_before = bench.feed.marks_seen

@@ -20,7 +20,8 @@ import numpy as np
 
 from hil_sim.camera import FrameClock
 from hil_sim.true_rig import parameter_errors
-from host.demo.commissioning_phase import make_commissioner, place_board
+from host.commissioning.frames import RangeTap
+from host.demo.commissioning_phase import feature_points, make_commissioner, place_board
 from host.demo.daemon_phase import running_daemon
 from host.demo.experiments import (
     Bench,
@@ -32,11 +33,13 @@ from host.demo.experiments import (
     start_host,
     static_experiment,
     survey_home,
+    wait_still,
 )
 from host.demo.feeds import TrackFeed
 from host.demo.propagation_report import propagation_results
 from host.demo.report_pages import write_report
 from host.demo.rigs import DemoRigs, model_of
+from host.demo.scoring import true_zero_mm
 from host.demo.world import SimCameraSource, SimWorld
 from host.experiments.budget import inputs_from_rig, overlay_sigma
 from host.frames.loop import FrameLoop
@@ -179,6 +182,8 @@ async def _experiments(
     ranger = None if scene is None else RangeFixer(rig, scene, RangeFixConfig(noise_mm=rf.noise_mm))
     feed = TrackFeed(rigs.host.track.marks.s_mm, world.sim.scenario.chain.pitch_mm, ranger)
     ctrl.add_sink(feed)
+    ranges = RangeTap()
+    ctrl.add_sink(ranges)
     bench = Bench(
         ctrl,
         rig,
@@ -189,8 +194,10 @@ async def _experiments(
         Truth(rigs.true_kinematics(), rigs.true_camera()),
         home_switch_s_mm=rigs.home_switch_mm(),
         latency_ns=round(rigs.host.camera.latency.value * 1e6),
-        home_survey_sigma_mm=SURVEY_SIGMA_MM if rigs.tolerances else 0.0,
-        survey_seed=seed,
+        home_survey_sigma_mm=SURVEY_SIGMA_MM,
+        ranges=ranges,
+        scene=scene,
+        range_noise_mm=rf.noise_mm,
         predicted_px=_budget(rigs),
     )
     clock = _frame_clock(rigs, seed)
@@ -208,11 +215,13 @@ async def _experiments(
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
         results["faults_cleared"] = await start_host(bench, link)
-        surveyed = await survey_home(bench, world)
         # Commissioned: the zero surveyed then is in the rig file and the calibration (the
         # track placement) was solved with it; the same switch and index give the same zero.
+        # Otherwise it is surveyed now, by the rangefinder on the end wall (`survey home`).
         commissioned = results["mode"]["commissioned"]
-        feed.set_home(rigs.host.track.home.value if commissioned else surveyed)
+        feed.set_home(rigs.host.track.home.value if commissioned else await survey_home(bench))
+        await wait_still(bench)
+        bench.home_truth_mm = true_zero_mm(world)  # scoring only
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}
         results["static"] = await static_experiment(bench, plan, start_s, progress)
         phase["static"] = False
@@ -247,7 +256,7 @@ async def _commission(rigs: DemoRigs, world: SimWorld, rig_file: Path, seed: int
     camera = SimCameraSource(
         world, rigs.true_kinematics(), rigs.true_camera(), model_of(rigs.truth),
         lambda t_ns: true_pose, fps=COMMISSIONING_FPS, delivery_s=clock.delivery_s,
-        clock=clock, board=setup.placed, seed=seed,
+        clock=clock, board=setup.placed, seed=seed, targets_p=feature_points(rigs.truth),
     )  # fmt: skip
     session = make_commissioner(setup, seed, _log)
     t0 = time.monotonic()

@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from host.demo.world import SceneTruth
+from hil_sim.runner import Simulation
+from host.demo.world import SceneTruth, SimWorld
 from host.frames.registrar import Registration
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
@@ -16,6 +17,17 @@ from host.geometry.transforms import invert_T, transform_points
 
 FloatArray = NDArray[np.float64]
 PROBE_DEPTH_MM = 3000.0  # overlay error is quoted for a point 3 m in front of the camera
+UM_PER_MM = 1000.0
+
+
+def true_zero_mm(world: SimWorld) -> float:
+    """Where the controller's zero truly is: the plant's arc length less the firmware's position,
+    read together under the simulator's lock (the trolley at rest). Scoring only."""
+
+    def simultaneous(sim: Simulation) -> float:
+        return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
+
+    return float(world.with_truth(simultaneous))
 
 
 @dataclass(frozen=True)
