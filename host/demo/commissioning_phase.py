@@ -44,8 +44,14 @@ STATION_SPACING_MM = 1000.0  # intrinsics and head views from the board's statio
 CHECK_OFFSET_MM = 500.0  # the acceptance test looks from stations not used to calibrate
 # the workpiece survey's stations, from the power-on position (the static observation points
 # are at 0 and 300 mm, the full demo's last at 2000 mm): rays across the workpiece
-WORKPIECE_STATIONS_MM = (-700.0, 150.0, 1000.0)
+WORKPIECE_STATIONS_MM = (-250.0, 300.0, 1100.0)
 MIN_TARGETS = 3
+HOME_CLEARANCE_MM = 100.0
+# latency: passes past the board long enough for several frames at constant speed (the
+# commissioning camera runs at 5 fps), the board in view all along
+LATENCY_SPAN_MM = 600.0
+LATENCY_SPEED_MM_S = 300.0
+LATENCY_PASSES = 4
 FIRST_HOME_MAX_SIGMA_MM = 10.0  # the first zero, before the head is calibrated
 READY_TIMEOUT_S = 60.0
 POLL_S = 0.5  # status computes the error budget: do not load the daemon's loop with it
@@ -126,9 +132,9 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
 
     The home first, by the rangefinder on the end wall ahead (σ from the drawing's rig: the
     beam's origin is only known that well until the head is calibrated); intrinsics around the
-    board; the head from three stations (the home's σ goes into the track's); the latency from
-    passes past the board; the workpiece by the camera, targets on its feature points
-    triangulated through the calibrated rig from stations around where it is watched; last the
+    board; the head from three stations (the home's σ goes into the track's); the workpiece by
+    the camera, targets on its feature points triangulated through the calibrated rig from
+    stations around where it is watched; the latency from passes past the board; last the
     acceptance test from two stations not used to calibrate.
     """
     lo, hi = rigs.travel_mm()
@@ -140,7 +146,8 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
     stations = within([s - STATION_SPACING_MM, s, s + STATION_SPACING_MM])
     check = within([s - CHECK_OFFSET_MM, s + CHECK_OFFSET_MM])
     start = rigs.start_s_mm()
-    survey_at = within([start + d for d in WORKPIECE_STATIONS_MM])
+    behind_home = rigs.home_switch_mm() + HOME_CLEARANCE_MM  # the controller stops short of it
+    survey_at = within([max(start + d, behind_home) for d in WORKPIECE_STATIONS_MM])
     board = BOARD.to_dict()
     pose = setup.T_w_b_surveyed.tolist()
     centre = (setup.T_w_b_surveyed @ np.append(BOARD.centre_mm, 1.0))[:3].tolist()
@@ -158,7 +165,6 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
         )
         .intrinsics(centre, stations, board=board)
         .add("calibrate_head", board_pose=pose, board=board, stations_mm=stations, **sigma)
-        .add("calibrate_latency", board_pose=pose, board=board, station_mm=s)
     )  # fmt: skip
     points = feature_points(nominal)
     if len(points) >= MIN_TARGETS:
@@ -166,6 +172,10 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
             "survey_workpiece", method="camera", model_points_mm=points.tolist(),
             stations_mm=survey_at,
         )  # fmt: skip
+    plan.add(
+        "calibrate_latency", board_pose=pose, board=board, station_mm=s, span_mm=LATENCY_SPAN_MM,
+        speed_mm_s=LATENCY_SPEED_MM_S, passes=LATENCY_PASSES,
+    )  # fmt: skip
     return plan.add("calibrate_check", board_pose=pose, board=board, stations_mm=check)
 
 

@@ -215,11 +215,11 @@ async def _experiments(
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
         results["faults_cleared"] = await start_host(bench, link)
-        # Commissioned: the zero surveyed then is in the rig file and the calibration (the
-        # track placement) was solved with it; the same switch and index give the same zero.
-        # Otherwise it is surveyed now, by the rangefinder on the end wall (`survey home`).
-        commissioned = results["mode"]["commissioned"]
-        feed.set_home(rigs.host.track.home.value if commissioned else await survey_home(bench))
+        # A zero surveyed at commissioning is in the rig file, and the calibration that came
+        # after it (track placement, workpiece) was solved with it; the same switch and index
+        # give the same zero. Otherwise it is surveyed now, by the rangefinder on the end wall.
+        surveyed = rigs.host.track.home.provenance.method != NOMINAL
+        feed.set_home(rigs.host.track.home.value if surveyed else await survey_home(bench))
         await wait_still(bench)
         bench.home_truth_mm = true_zero_mm(world)  # scoring only
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}

@@ -107,6 +107,38 @@ def aimed_errors(
     ]
 
 
+def chain_errors(
+    regs: tuple[Registration, ...],
+    truth: SceneTruth,
+    host: tuple[Rig, CameraModel],
+    home_offset_mm: float,
+    target_w: FloatArray,
+) -> list[Score]:
+    """As `aimed_errors`, but against the host's own rig at the true position: the track error.
+
+    The host's rig file and the world disagree by its calibration's world-placement error (the
+    board's and walls' survey): a workpiece surveyed through the same rig carries it too, so the
+    overlay does not see it. What is left is where the registration puts the trolley along the
+    track: its arc length against the true one in the host's own zero (home_offset_mm = the
+    host's home less the true zero, constant while the chain does not skip at the zero).
+    """
+    rig, camera = host
+    s_host = truth.s_mm + home_offset_mm
+    pan, tilt = rig.aim(s_host, target_w)
+    T_ref = rig.T_w_c(s_host, pan, tilt)
+    return [
+        probe_error(
+            rig.T_w_c(
+                reg.s_mm, pan + reg.pan_rad - truth.pan_rad, tilt + reg.tilt_rad - truth.tilt_rad
+            ),
+            T_ref,
+            truth.s_mm,
+            camera,
+        )
+        for reg in regs
+    ]
+
+
 def summary(values: list[float]) -> dict[str, float]:
     """Mean, standard deviation, RMS, median and maximum (nan for an empty list)."""
     if not values:
