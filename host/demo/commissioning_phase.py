@@ -22,7 +22,7 @@ import numpy as np
 
 from hil_sim.camera import PlacedBoard
 from host.calibration.board import BoardSpec
-from host.commissioning.client import CommissioningPlan, RunFailedError, commission
+from host.commissioning.client import CommissioningPlan, RunFailedError, run_op
 from host.control.client import ControlClient
 from host.demo.daemon_phase import RunningDaemon
 from host.demo.experiments import DEMO_WATCHDOG_MS, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD
@@ -92,9 +92,14 @@ def feature_points(spec: RigSpec) -> FloatArray:
 
 
 def make_commissioner(
-    setup: BoardSetup, seed: int, log: Callable[[str], None]
-) -> Callable[[RunningDaemon, DemoRigs, SimWorld], Any]:
-    """The demo's commissioning session (run_demo's `commission`)."""
+    setup: BoardSetup, seed: int, log: Callable[[str], None],
+    stick_targets: Callable[[bool], None] = lambda on: None,
+) -> Callable[[RunningDaemon, DemoRigs, SimWorld], Any]:  # fmt: skip
+    """The demo's commissioning session (run_demo's `commission`).
+
+    `stick_targets(True)` puts the photogrammetry targets on the workpiece for its survey and
+    `stick_targets(False)` takes them off again, so that they never sit in a board's view.
+    """
 
     async def session(daemon: RunningDaemon, rigs: DemoRigs, world: SimWorld) -> dict[str, Any]:
         client = await ControlClient.connect_unix(str(daemon.socket_path))
@@ -110,7 +115,7 @@ def make_commissioner(
             t0 = time.monotonic()
             error = ""
             try:
-                steps = await commission(client, plan, _progress(log))
+                steps = await _run_plan(client, plan, _progress(log), stick_targets)
             except RunFailedError as exc:  # reported, and the experiments say "not commissioned"
                 ctl = (await client.request("status")).get("controller", {})
                 error = f"{exc} (controller {ctl.get('state')}, faults {ctl.get('fault_names')})"
@@ -177,6 +182,25 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
         speed_mm_s=LATENCY_SPEED_MM_S, passes=LATENCY_PASSES,
     )  # fmt: skip
     return plan.add("calibrate_check", board_pose=pose, board=board, stations_mm=check)
+
+
+async def _run_plan(
+    client: ControlClient, plan: CommissioningPlan, progress: Callable[[dict[str, Any]], None],
+    stick_targets: Callable[[bool], None],
+) -> list[tuple[str, dict[str, Any]]]:  # fmt: skip
+    """The plan's steps in order, stopping after the first that fails (as `commission`)."""
+    results: list[tuple[str, dict[str, Any]]] = []
+    for op, args in plan.steps:
+        targets = op == "survey_workpiece" and args.get("method") == "camera"
+        stick_targets(targets)
+        try:
+            result = await run_op(client, op, args, progress)
+        finally:
+            stick_targets(False)
+        results.append((op, result))
+        if not result.get("passed", False):
+            break
+    return results
 
 
 def _ready_and_homed(status: dict[str, Any]) -> bool:

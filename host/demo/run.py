@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from hil_sim.camera import FrameClock
-from hil_sim.true_rig import parameter_errors
+from hil_sim.true_rig import Tolerances, parameter_errors
 from host.commissioning.frames import RangeTap
 from host.demo.commissioning_phase import feature_points, make_commissioner, place_board
 from host.demo.daemon_phase import running_daemon
@@ -256,9 +257,14 @@ async def _commission(rigs: DemoRigs, world: SimWorld, rig_file: Path, seed: int
     camera = SimCameraSource(
         world, rigs.true_kinematics(), rigs.true_camera(), model_of(rigs.truth),
         lambda t_ns: true_pose, fps=COMMISSIONING_FPS, delivery_s=clock.delivery_s,
-        clock=clock, board=setup.placed, seed=seed, targets_p=feature_points(rigs.truth),
+        clock=clock, board=setup.placed, seed=seed,
     )  # fmt: skip
-    session = make_commissioner(setup, seed, _log)
+    targets = feature_points(rigs.truth)
+
+    def stick_targets(on: bool) -> None:
+        camera.targets_p = targets if on else None
+
+    session = make_commissioner(setup, seed, _log, stick_targets)
     t0 = time.monotonic()
     try:
         async with running_daemon(world, rig_file, rig_file.parent / "daemon", camera) as daemon:
@@ -304,7 +310,11 @@ def _frame_clock(rigs: DemoRigs, seed: int) -> FrameClock:
     """Exposure stamps without tolerances; with them, the true camera's delivery stamps."""
     if not rigs.tolerances or rigs.truth.camera.trigger:
         return FrameClock(triggered=True)
-    return FrameClock(delivery_s=rigs.truth.camera.latency.value / 1e3, seed=seed)
+    # The true latency is the stamps' mean offset: delivery plus the jitter's mean |N(0, σ)|.
+    jitter_s = Tolerances().latency_jitter_ms / 1e3
+    mean_late_s = rigs.truth.camera.latency.value / 1e3
+    delivery_s = mean_late_s - jitter_s * math.sqrt(2 / math.pi)
+    return FrameClock(delivery_s=delivery_s, jitter_s=jitter_s, seed=seed)
 
 
 def _plain(stats: object) -> dict[str, Any]:
