@@ -56,6 +56,7 @@ FIRST_HOME_MAX_SIGMA_MM = 10.0  # the first zero, before the head is calibrated
 READY_TIMEOUT_S = 60.0
 POLL_S = 0.5  # status computes the error budget: do not load the daemon's loop with it
 HOMED = int(Inputs.HOMED)
+STEP_TRIES = 2
 
 
 @dataclass(frozen=True)
@@ -193,14 +194,38 @@ async def _run_plan(
     for op, args in plan.steps:
         targets = op == "survey_workpiece" and args.get("method") == "camera"
         stick_targets(targets)
+        t0 = time.monotonic()
         try:
-            result = await run_op(client, op, args, progress)
+            result = await _run_step(client, op, args, progress)
         finally:
             stick_targets(False)
-        results.append((op, result))
+        results.append((op, {**result, "duration_s": round(time.monotonic() - t0, 1)}))
         if not result.get("passed", False):
             break
     return results
+
+
+async def _run_step(
+    client: ControlClient, op: str, args: dict[str, Any],
+    progress: Callable[[dict[str, Any]], None],
+) -> dict[str, Any]:  # fmt: skip
+    """One step; a run that ended in an error (a command timed out on a starved link) is run
+    once more, as an installer would, after clearing a watchdog fault it left."""
+    for attempt in range(STEP_TRIES):
+        try:
+            return await run_op(client, op, args, progress)
+        except RunFailedError as exc:
+            if attempt + 1 == STEP_TRIES or exc.status.get("state") != "error":
+                raise
+            progress({"phase": f"{op} again after: {exc}"})
+            ctl = (await client.request("status")).get("controller", {})
+            if ctl.get("state") == "FAULT" and ctl.get("fault_names") == ["WATCHDOG"]:
+                await client.request("clear")
+                await asyncio.sleep(POLL_S)
+            if not _ready_and_homed(await client.request("status")):
+                await client.request("home")  # the same switch and index: the same zero
+            await _wait(client, _ready_and_homed, "ready and homed")
+    raise AssertionError("unreachable")
 
 
 def _ready_and_homed(status: dict[str, Any]) -> bool:
@@ -238,5 +263,8 @@ def _progress(log: Callable[[str], None]) -> Callable[[dict[str, Any]], None]:
 
 def _plain(result: dict[str, Any]) -> dict[str, Any]:
     """The JSON-able part of a step's result."""
-    keep = ("passed", "reasons", "camera", "sigma", "rms_px", "views", "report", "written")
+    keep = (
+        "passed", "reasons", "camera", "sigma", "rms_px", "views", "report", "written",
+        "duration_s", "home_mm", "sigma_mm", "latency_ms", "sigma_ms", "rms_mm", "sigma_px",
+    )  # fmt: skip
     return {k: result[k] for k in keep if k in result}

@@ -56,3 +56,10 @@ def test_commissioned_demo_recovers_the_true_lens_within_its_sigma(tmp_path: Pat
     for key in INTRINSIC_KEYS:
         row = results["calibration"][f"camera.{key}"]
         assert abs(row["truth"] - row["estimate"]) <= 3 * row["sigma"] + 1e-12, (key, row)
+    measured = ("camera.", "head.m_cr", "track.placement", "track.home", "workpiece.frame")
+    for key, row in results["calibration"].items():
+        if key.startswith(measured) and row["sigma"] > 0:  # a calibration reports what it achieves
+            error = row.get("error_local", row["estimate"] - row["truth"])
+            assert abs(error) <= 3 * row["sigma"], (key, row)
+    assert rig.workpiece.frame.provenance.method.startswith("survey workpiece (camera")
+    assert rig.track.home.provenance.method.startswith("survey home (rangefinder")
