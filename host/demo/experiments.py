@@ -11,9 +11,9 @@ import asyncio
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,13 +40,14 @@ from host.geometry.head import Rig
 from host.geometry.model import Wireframe
 from host.geometry.rangefinder import RangeScene
 from host.geometry.transforms import make_T
-from host.link import Controller, LinkError
+from host.link import Controller, ControllerRejected, LinkError
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
 from protocol import ParamId
 from protocol.enums import Fault, State
 
 FloatArray = NDArray[np.float64]
+T = TypeVar("T")
 Progress = Callable[[str, float], None]
 
 # The daemon's telemetry rates (an ENCODER_SAMPLE is 26 bytes on the wire, so 115200 baud
@@ -63,7 +64,7 @@ SETTLED_PITCH_FRACTION = 0.125  # ~2 px: far above the fused error, far below a 
 HOMING_RUN_UP_MM = 100.0  # drive to just before the home switch fast, then seek it slowly
 SETTLE_S = 0.2  # ring-down after the head reports it arrived
 HEAD_TIMEOUT_S = 10.0
-DEMO_WATCHDOG_MS = 2_000
+DEMO_WATCHDOG_MS = 5_000
 HEAD_TOLERANCE_RAD = 2e-3
 ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
 MAX_FRAMES = 4  # frames per wanted observation before the point gives up
@@ -186,6 +187,26 @@ class Bench:
     home_truth_mm: float | None = None  # true arc length of the zero (scoring only)
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
+    faults_cleared: list[str] = field(default_factory=list)  # watchdog faults recovered from
+
+    async def command(self, send: Callable[[], Awaitable[T]]) -> T:
+        """Send a motion command; if the controller refuses it because a stalled demo process
+        let its watchdog fault it, clear that fault (re-homing if the zero was lost) and send
+        it once more. Any other refusal stops the run, as it would stop an operator."""
+        try:
+            return await send()
+        except ControllerRejected as exc:
+            snap = self.ctrl.snapshot()
+            if exc.state is not State.FAULT or snap.faults != Fault.WATCHDOG:
+                raise
+        await self.ctrl.clear_fault()
+        self.faults_cleared.append("WATCHDOG")
+        await asyncio.sleep(STATUS_WAIT_S)
+        if not self.ctrl.snapshot().homed:  # the same switch and index: the same zero
+            motion = await self.ctrl.home(speed_mm_s=200.0)
+            await motion.done(timeout_s=60.0)
+            self.feed.set_home(self.feed.home_s_mm)
+        return await send()
 
     def registrars(self) -> tuple[Registrar, Registrar]:
         """Encoder-only (draws the overlay) and fused (scored only)."""
@@ -204,7 +225,9 @@ class Bench:
 
     async def move(self, s_track_mm: float, speed_mm_s: float) -> None:
         """Drive the trolley to a track position (controller coordinates = track − home)."""
-        motion = await self.ctrl.move_to(s_track_mm - self.feed.home_s_mm, speed_mm_s, ACCEL_MM_S2)
+        motion = await self.command(
+            lambda: self.ctrl.move_to(s_track_mm - self.feed.home_s_mm, speed_mm_s, ACCEL_MM_S2)
+        )
         distance = abs(s_track_mm - (self.feed.last_enc_mm or s_track_mm))
         await motion.done(timeout_s=10.0 + 2.0 * distance / speed_mm_s)
 
@@ -212,7 +235,8 @@ class Bench:
         self, s_track_mm: float, speed_mm_s: float, target_w: FloatArray
     ) -> None:
         """Drive to a track position with the head turning toward a world point on the way."""
-        await self.ctrl.set_head(*self.rig.aim(s_track_mm, target_w))
+        angles = self.rig.aim(s_track_mm, target_w)
+        await self.command(lambda: self.ctrl.set_head(*angles))
         await self.move(s_track_mm, speed_mm_s)
         await self.aim(s_track_mm, target_w)
 
@@ -222,7 +246,7 @@ class Bench:
 
     async def point_head(self, pan: float, tilt: float) -> None:
         """Turn the head to these angles and let it settle."""
-        await self.ctrl.set_head(pan, tilt)
+        await self.command(lambda: self.ctrl.set_head(pan, tilt))
         loop = asyncio.get_running_loop()
         deadline = loop.time() + HEAD_TIMEOUT_S
         while loop.time() < deadline:
@@ -353,8 +377,12 @@ async def moving_experiment(
     progress("moving: tracking the robot", 0.0)
     loop = asyncio.get_running_loop()
     robot.start(loop.time())
-    motion = await bench.ctrl.move_to(
-        start_s + plan.moving_length_mm - bench.feed.home_s_mm, plan.moving_speed_mm_s, ACCEL_MM_S2
+    motion = await bench.command(
+        lambda: bench.ctrl.move_to(
+            start_s + plan.moving_length_mm - bench.feed.home_s_mm,
+            plan.moving_speed_mm_s,
+            ACCEL_MM_S2,
+        )
     )
     collected: list[Score] = []
 
@@ -387,7 +415,7 @@ async def drift_experiment(
 ) -> dict[str, Any]:
     """Beyond the paper: a loop with a stretched chain and tooth skips, encoder-only vs fused."""
     world.with_truth(lambda sim: sim.set_elongation(plan.elongation))
-    await bench.ctrl.set_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)  # turns while homing
+    await bench.command(lambda: bench.ctrl.set_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD))
     await bench.move(bench.home_switch_s_mm + HOMING_RUN_UP_MM, plan.travel_speed_mm_s)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
@@ -423,8 +451,10 @@ async def drift_experiment(
     skips = sorted(start_enc + f * plan.loop_length_mm for f in plan.skips_at_fraction)
     bench.collector.sink = take
     try:
-        motion = await bench.ctrl.move_to(
-            start_enc + plan.loop_length_mm - bench.feed.home_s_mm, plan.loop_speed_mm_s, 800.0
+        motion = await bench.command(
+            lambda: bench.ctrl.move_to(
+                start_enc + plan.loop_length_mm - bench.feed.home_s_mm, plan.loop_speed_mm_s, 800.0
+            )
         )
         finished = asyncio.ensure_future(
             motion.done(timeout_s=10.0 + 2.0 * plan.loop_length_mm / plan.loop_speed_mm_s)

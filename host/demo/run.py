@@ -229,6 +229,7 @@ async def _experiments(
         results["moving"] = await moving_experiment(bench, plan, start_s, robot, progress)
         source.render = False  # the loop is scored on poses; rendering would only cost frames
         results["drift"] = await drift_experiment(bench, world, plan, progress)
+        results["faults_cleared"] += bench.faults_cleared  # recovered from mid-run
         results["link_stats"] = _plain(ctrl.session.stats)
         results["frame_loop"] = {
             "captured": loop.stats.captured,
