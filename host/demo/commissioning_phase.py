@@ -57,6 +57,7 @@ READY_TIMEOUT_S = 60.0
 POLL_S = 0.5  # status computes the error budget: do not load the daemon's loop with it
 HOMED = int(Inputs.HOMED)
 STEP_TRIES = 2
+CLOCK_SYNCED_US = 1000.0
 
 
 @dataclass(frozen=True)
@@ -112,6 +113,7 @@ def make_commissioner(
             log("commissioning: homing")
             await client.request("home")
             await _wait(client, _ready_and_homed, "homed")
+            await _wait_clock(client)  # samples are stamped through it (a survey averages them)
             plan = commissioning_plan(rigs, setup)
             t0 = time.monotonic()
             error = ""
@@ -246,6 +248,16 @@ async def _wait(client: ControlClient, ok: Callable[[dict[str, Any]], bool], wha
             return
         await asyncio.sleep(POLL_S)
     raise TimeoutError(f"commissioning: not {what} within {READY_TIMEOUT_S} s ({status})")
+
+
+async def _wait_clock(client: ControlClient) -> None:
+    """Until the link's clock sync has converged (its σ below CLOCK_SYNCED_US), or a timeout."""
+    deadline = time.monotonic() + READY_TIMEOUT_S
+    while time.monotonic() < deadline:
+        sigma = (await client.request("link_stats")).get("clock_sigma_us")
+        if isinstance(sigma, int | float) and sigma < CLOCK_SYNCED_US:
+            return
+        await asyncio.sleep(POLL_S)
 
 
 def _progress(log: Callable[[str], None]) -> Callable[[dict[str, Any]], None]:
