@@ -64,6 +64,10 @@ def _no_budget() -> tuple[BudgetInputs, FloatArray] | None:
     return None
 
 
+def _nominal_spec() -> RigSpec:
+    return RigSpec()
+
+
 @dataclass
 class CommissioningEnv:
     """The daemon's side of a commissioning run."""
@@ -85,7 +89,8 @@ class CommissioningEnv:
     latency_ms: Callable[[], float] = _no_home  # the exposure latency the pose source applies
     # called after a passing run wrote the rig file: the daemon rereads it (as on SIGHUP)
     after_write: Callable[[], Awaitable[Any]] | None = None
-    spec: Callable[[], RigSpec] = RigSpec  # the rig description as it stands (σ, workpiece)
+    # the rig description as it stands (σ of every block: the rangefinder runs propagate them)
+    spec: Callable[[], RigSpec] = _nominal_spec
 
     _budget_cache: tuple[tuple[float, float, float], float, float | None] | None = field(
         default=None, init=False, repr=False

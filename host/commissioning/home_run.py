@@ -34,14 +34,8 @@ RANGE_TIMEOUT_S = 5.0
 async def survey_home(
     io: RigIO, tap: RangeTap, rig: Rig, scene: RangeScene, pan: float, tilt: float,
     samples: int, noise_mm: float, wall_sigma_mm: float, progress: dict[str, Any],
-    rig_sigma_mm: float = 0.0, max_sigma_mm: float = MAX_SIGMA_MM,
 ) -> dict[str, Any]:  # fmt: skip
-    """Aim, read, solve; the result map (passed, reasons, home_mm, sigma_mm, ...).
-
-    `rig_sigma_mm`: how far the rig file may put the beam's origin off along the beam (the
-    track placement's and the rangefinder mount's σ): before the head is calibrated, that and
-    not the reading sets the home's σ.
-    """
+    """Aim, read, solve; the result map (passed, reasons, home_mm, sigma_mm, ...)."""
     snap = io.snapshot()
     position = snap.get("position_mm")
     if position is None or snap.get("state") != "READY":
@@ -69,12 +63,11 @@ async def survey_home(
         s += step
         if abs(step) < 1e-3:
             break
-    reading = math.hypot(noise_mm / math.sqrt(samples), wall_sigma_mm)
-    sigma = math.hypot(reading, rig_sigma_mm) / abs(slope)
+    sigma = math.hypot(noise_mm / math.sqrt(samples), wall_sigma_mm) / abs(slope)
     home = s - float(position)
-    ok = sigma <= max_sigma_mm
+    ok = sigma <= MAX_SIGMA_MM
     why = f"home at s = {home:.2f} ± {sigma:.2f} mm (was {io.home_s_mm:.2f})" if ok else (
-        f"σ {sigma:.2f} mm > {max_sigma_mm} mm")  # fmt: skip
+        f"σ {sigma:.2f} mm > {MAX_SIGMA_MM} mm")  # fmt: skip
     rows: list[list[str | float]] = [
         ["home before (mm)", round(io.home_s_mm, 3)], ["home after (mm)", round(home, 3)],
         ["σ (mm)", round(sigma, 3)], ["reading (mm)", round(d, 2)], ["∂range/∂s", round(slope, 3)],

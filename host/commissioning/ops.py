@@ -449,8 +449,9 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         rig, _ = env.kinematics()
         io = RigIO(controller, env.frames() or FrameTap(_NoCamera()), home_s_mm=env.home_s_mm())
         result = await home_run.survey_home(
-            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress, rig_sigma, max_sigma
+            io, tap, rig, scene, pan, tilt, samples, noise, wall, progress
         )
+        result = with_rig_sigma(result, rig_sigma, max_sigma)
         report = await asyncio.to_thread(
             _write, env.report_root, "home", home_run.home_page(result)
         )
@@ -470,6 +471,24 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     except JobBusyError as exc:
         raise OpError("busy", str(exc)) from exc
     return {"job": job.id, "kind": job.kind}
+
+
+def with_rig_sigma(
+    result: dict[str, Any], rig_sigma_mm: float, max_sigma_mm: float
+) -> dict[str, Any]:
+    """A home survey's σ with the beam origin's own (along the beam, over |∂range/∂s|), judged
+    against `max_sigma_mm`: before the head is calibrated, that and not the reading sets it."""
+    if "sigma_mm" not in result or not math.isfinite(result.get("slope", math.nan)):
+        return result
+    sigma = math.hypot(result["sigma_mm"], rig_sigma_mm / abs(result["slope"]))
+    ok = sigma <= max_sigma_mm
+    why = (
+        f"home at s = {result['home_mm']:.2f} ± {sigma:.2f} mm (reading ± "
+        f"{result['sigma_mm']:.2f} mm, the rig's beam origin ± {rig_sigma_mm:.2f} mm)"
+        if ok
+        else f"σ {sigma:.2f} mm > {max_sigma_mm} mm"
+    )
+    return {**result, "passed": ok, "reasons": [why], "sigma_mm": sigma}
 
 
 class _NoCamera:
