@@ -36,7 +36,8 @@ from protocol.enums import Inputs
 BOARD = BoardSpec(squares_x=8, squares_y=6, square_mm=70.0, marker_mm=52.0)
 BOARD_ALONG_MM = 1200.0  # the stand: this far along the track from the power-on position
 BOARD_ASIDE_MM = 400.0  # ... and this far to the left of it
-BOARD_BELOW_MM = 2500.0  # ... this far below the track
+BOARD_BELOW_MM = 2500.0  # ... this far below the track, at most
+BOARD_FILL = 0.64  # ... or nearer, so that its width fills this much of the image (a wide lens)
 BOARD_MIN_Z_MM = 500.0
 BOARD_SURVEY_SIGMA_MM = 1.0
 BOARD_SURVEY_SIGMA_RAD = 1e-3
@@ -77,7 +78,10 @@ def place_board(rigs: DemoRigs, seed: int) -> BoardSetup:
     T = rigs.host_kinematics().track.pose(s)  # the installer places it by the drawing
     left_w = -T[:3, 1]  # the trolley's y points right of travel
     centre = T[:3, 3] + BOARD_ASIDE_MM * left_w
-    centre[2] = max(BOARD_MIN_Z_MM, centre[2] - BOARD_BELOW_MM)
+    cam = rigs.host.camera
+    width_mm = BOARD.squares_x * BOARD.square_mm
+    fill_mm = cam.intrinsics.get("fx") * width_mm / (BOARD_FILL * cam.width)
+    centre[2] = max(BOARD_MIN_Z_MM, centre[2] - min(BOARD_BELOW_MM, fill_mm))
     yaw = float(np.arctan2(T[1, 0], T[0, 0])) + rng.uniform(-0.3, 0.3)
     R = rot_x(np.pi) @ euler_zyx(yaw, rng.normal(0, 0.05), rng.normal(0, 0.05))
     T_true = make_T(R, centre - R @ BOARD.centre_mm)
