@@ -223,7 +223,10 @@ async def _run_step(
         except RunFailedError as exc:
             if attempt + 1 == STEP_TRIES or exc.status.get("state") != "error":
                 raise
-            progress({"phase": f"{op} again after: {exc}"})
+            link = await client.request("link_stats")
+            keep = ("drops", "unsynced_samples", "rtt_ms", "clock_sigma_us", "sink_errors")
+            seen = {k: link.get(k) for k in keep}
+            progress({"phase": f"{op} again after: {exc} (link {seen})"})
             ctl = (await client.request("status")).get("controller", {})
             if ctl.get("state") == "FAULT" and ctl.get("fault_names") == ["WATCHDOG"]:
                 await client.request("clear")
