@@ -114,6 +114,7 @@ def make_commissioner(
             # One process runs simulator, daemon and rendering on a shared machine: give the
             # controller's watchdog the slack the experiments have too (PROTOCOL.md §9).
             await client.request("param_set", param="WATCHDOG_MS", value=DEMO_WATCHDOG_MS)
+            await _clear_watchdog(client)  # a daemon slow to start let the controller fault
             log("commissioning: homing")
             await client.request("home")
             await _wait(client, _ready_and_homed, "homed")
@@ -227,14 +228,20 @@ async def _run_step(
             keep = ("drops", "unsynced_samples", "rtt_ms", "clock_sigma_us", "sink_errors")
             seen = {k: link.get(k) for k in keep}
             progress({"phase": f"{op} again after: {exc} (link {seen})"})
-            ctl = (await client.request("status")).get("controller", {})
-            if ctl.get("state") == "FAULT" and ctl.get("fault_names") == ["WATCHDOG"]:
-                await client.request("clear")
-                await asyncio.sleep(POLL_S)
+            await _clear_watchdog(client)
             if not _ready_and_homed(await client.request("status")):
                 await client.request("home")  # the same switch and index: the same zero
             await _wait(client, _ready_and_homed, "ready and homed")
     raise AssertionError("unreachable")
+
+
+async def _clear_watchdog(client: ControlClient) -> None:
+    """Clear a latched WATCHDOG fault (only that: any other fault stops the session)."""
+    await asyncio.sleep(POLL_S)  # a STATUS since the link came up
+    ctl = (await client.request("status")).get("controller", {})
+    if ctl.get("state") == "FAULT" and ctl.get("fault_names") == ["WATCHDOG"]:
+        await client.request("clear")
+        await asyncio.sleep(POLL_S)
 
 
 def _ready_and_homed(status: dict[str, Any]) -> bool:
