@@ -20,7 +20,9 @@ FEATURES_P = np.array(
 T_W_P = make_T(rotvec_to_R([0.001, -0.002, 0.003]), [-300.0, -300.0, 0.0])
 
 
-def _views(rig: Rig, camera: CameraModel, T_w_p: np.ndarray, seed: int = 1) -> list:
+def _views(
+    rig: Rig, camera: CameraModel, T_w_p: np.ndarray, seed: int = 1
+) -> list[targets_run.TargetView]:
     """Rendered views from three stations, targets found in them."""
     sim = SyntheticCamera(camera, seed=seed)
     model = manipulator_wireframe()
