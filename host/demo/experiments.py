@@ -547,13 +547,22 @@ def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:
 
 @dataclass
 class MovingRobot:
-    """The §5.3 workpiece: a robot driving along a direction at uniform speed, from a start pose."""
+    """The §5.3 workpiece: a robot driving along a direction at uniform speed, from a start pose.
+
+    It drives along an axis of its own base (the workpiece frame): `direction_w` is that axis as
+    the host's start pose puts it in the world. The true robot drives along the same axis of
+    its true frame, so a workpiece surveyed off by a rotation moves off by it too, as it would.
+    """
 
     start_pose: FloatArray
     direction_w: FloatArray
     speed_mm_s: float
     length_mm: float
     _t0: float | None = None  # when it set off, host monotonic seconds
+    direction_p: FloatArray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.direction_p = self.start_pose[:3, :3].T @ np.asarray(self.direction_w, np.float64)
 
     def start(self, t0: float) -> None:
         """Set off at t0 (the event loop's clock, which is time.monotonic)."""
@@ -565,4 +574,5 @@ class MovingRobot:
         if self._t0 is None:
             return start
         travel = min(max(0.0, t_ns / 1e9 - self._t0) * self.speed_mm_s, self.length_mm)
-        return make_T(start[:3, :3], start[:3, 3] + travel * self.direction_w)
+        out: FloatArray = start @ make_T(np.eye(3), travel * self.direction_p)
+        return out
