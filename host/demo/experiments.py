@@ -314,7 +314,8 @@ async def survey_home(bench: Bench) -> float:
     if bench.ranges is None or bench.scene is None:
         raise LinkError("no rangefinder or no surveyed walls: the zero cannot be surveyed")
     await wait_still(bench)
-    io = RigIO(bench.ctrl, FrameTap(_NoCamera()), home_s_mm=bench.feed.home_s_mm)
+    # the drawing's home as the start: the arc lengths the solve starts from stay on the track
+    io = RigIO(bench.ctrl, FrameTap(_NoCamera()), home_s_mm=bench.home_switch_s_mm)
     result = await home_run.survey_home(
         io, bench.ranges, bench.rig, bench.scene, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD,
         HOME_SURVEY_SAMPLES, bench.range_noise_mm, bench.home_survey_sigma_mm, {},
