@@ -188,6 +188,8 @@ class Bench:
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
     faults_cleared: list[str] = field(default_factory=list)  # watchdog faults recovered from
+    # (the zero in use, the home survey's reading of it then): the re-homed zero's reference
+    home_reference_mm: tuple[float, float] | None = None
 
     async def command(self, send: Callable[[], Awaitable[T]]) -> T:
         """Send a motion command; if the controller refuses it because a stalled demo process
@@ -420,9 +422,12 @@ async def drift_experiment(
     await bench.move(bench.home_switch_s_mm + HOMING_RUN_UP_MM, plan.travel_speed_mm_s)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
-    # The same switch and sprocket index give the same zero (a stretched chain moves it by the
-    # stretch of the few mm between them): the home surveyed before holds.
-    bench.feed.set_home(bench.feed.home_s_mm)
+    # The same switch and sprocket index, but a stretched chain puts the zero elsewhere along
+    # the track (the stretch of the chain up to it): the same survey as at the start, with the
+    # same aim and rig, measures by how much; what both surveys share (rig, walls) cancels.
+    await wait_still(bench)
+    base, reference = bench.home_reference_mm or (bench.feed.home_s_mm, bench.feed.home_s_mm)
+    bench.feed.set_home(base + await survey_home(bench) - reference)
     await wait_still(bench)
     bench.home_truth_mm = true_zero_mm(world)  # scoring only: the stretch moved it a little
     await bench.point_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)

@@ -220,7 +220,9 @@ async def _experiments(
         # after it (track placement, workpiece) was solved with it; the same switch and index
         # give the same zero. Otherwise it is surveyed now, by the rangefinder on the end wall.
         surveyed = rigs.host.track.home.provenance.method != NOMINAL
-        feed.set_home(rigs.host.track.home.value if surveyed else await survey_home(bench))
+        reference = await survey_home(bench)  # the drift's re-homing is compared with this
+        bench.home_reference_mm = (rigs.host.track.home.value if surveyed else reference, reference)
+        feed.set_home(bench.home_reference_mm[0])
         await wait_still(bench)
         bench.home_truth_mm = true_zero_mm(world)  # scoring only
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}
