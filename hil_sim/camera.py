@@ -32,6 +32,12 @@ NOISE_SIGMA_DN = 1.5  # Gaussian pixel noise, grey levels
 TEXTURE_PX_PER_SQUARE = 64  # board texture resolution
 BOARD_MARGIN_SQUARES = 1.0  # white border around the squares, in squares
 TEXTURED_POINT_RADIUS_PX = 3
+# Photogrammetry targets on the workpiece's feature points: a white dot in a black ring, drawn
+# at a fixed size in pixels (they are small; a real target's size only changes its area).
+TARGET_DOT_PX = 3.5
+TARGET_RING_PX = 7.0
+TARGET_DOT_BGR = (245, 245, 245)
+TARGET_RING_BGR = (15, 15, 15)
 BLUR_SAMPLES = 9  # sub-exposure renders averaged into one blurred frame
 # A camera without a trigger stamps a frame when it arrives: readout plus transfer late
 # (about 20 ms for 1280x1024 at 30 fps), with a millisecond of USB/driver jitter.
@@ -119,8 +125,10 @@ class SyntheticCamera:
         T_w_p: FloatArray,
         textured_points_p: FloatArray | None = None,
         board: PlacedBoard | None = None,
+        targets_p: FloatArray | None = None,
     ) -> SceneFrame:
-        """Grey background (and a board in the hall), model edges (frame p), textured points."""
+        """Grey background (and a board in the hall), model edges (frame p), textured points,
+        photogrammetry targets (frame p)."""
         T_c_p = invert_T(T_w_c) @ T_w_p
         if board is None:
             img = np.empty((self.camera.height, self.camera.width, 3), dtype=np.uint8)
@@ -132,6 +140,9 @@ class SyntheticCamera:
         pts = np.zeros((0, 3)) if textured_points_p is None else textured_points_p
         pts_uv, _ = self.camera.project(transform_points(T_c_p, pts))
         self._draw_points(img, pts_uv)
+        if targets_p is not None:
+            targets_uv, _ = self.camera.project(transform_points(T_c_p, targets_p))
+            self._draw_targets(img, targets_uv)
         verts_uv, _ = self.camera.project(transform_points(T_c_p, model.vertices))
         return SceneFrame(self._noisy(img), np.array(T_w_c, dtype=np.float64), verts_uv, pts_uv)
 
@@ -207,6 +218,17 @@ class SyntheticCamera:
                 center = (round(float(u) * 16), round(float(v) * 16))
                 color = (int(c[0]), int(c[1]), int(c[2]))
                 cv2.circle(img, center, TEXTURED_POINT_RADIUS_PX * 16, color, -1, cv2.LINE_AA, 4)
+
+    def _draw_targets(self, img: UInt8Image, uv: FloatArray) -> None:
+        """A white dot in a black ring at each target, anti-aliased at 1/16 px."""
+        for u, v in uv:
+            if np.isfinite(u) and np.isfinite(v) and abs(u) < 1e5 and abs(v) < 1e5:
+                centre = (round(float(u) * 16), round(float(v) * 16))
+                for radius, color in (
+                    (TARGET_RING_PX, TARGET_RING_BGR),
+                    (TARGET_DOT_PX, TARGET_DOT_BGR),
+                ):
+                    cv2.circle(img, centre, round(radius * 16), color, -1, cv2.LINE_AA, 4)
 
     def _noisy(self, img: UInt8Image) -> UInt8Image:
         """Add seeded Gaussian noise and clip back to uint8."""

@@ -98,6 +98,7 @@ def calibrate_handeye(
     cov_T_w_b: ArrayLike | None = None,
     camera_cov: ArrayLike | None = None,
     head_sigma_rad: float = 0.0,
+    home_sigma_mm: float = 0.0,
 ) -> HandEyeResult:
     """Solve M_cr and T_w_track; T_w_b is the target's surveyed world pose (default: world = b).
 
@@ -105,7 +106,10 @@ def calibrate_handeye(
     camera's own uncertainty to the result's: a focal length off by 0.1 % moves the camera by
     0.1 % of the board distance, far more than the pixel noise does. `head_sigma_rad` (the
     head angles' read noise) adds theirs: it turns a whole view at once, so with tens of
-    corners a view it can outweigh the pixel noise in M_cr's rotation.
+    corners a view it can outweigh the pixel noise in M_cr's rotation. `home_sigma_mm` (the σ
+    of the controller's zero the views' arc lengths were computed with) adds that of the arc
+    lengths: on a straight a home error and a shift of the track along it are one and the same,
+    so the fit puts the home's error into the track placement.
     """
     if len(views) < MIN_VIEWS:
         raise ValueError(f"need at least {MIN_VIEWS} views, got {len(views)}")
@@ -127,6 +131,8 @@ def calibrate_handeye(
     if head_sigma_rad > 0.0:
         A_h = _head_term(problem, views, track, mount, M_cr, T_b_k, J)
         cov = cov + head_sigma_rad**2 * (A_h @ A_h.T)
+    if home_sigma_mm > 0.0:
+        cov = cov + _home_term(views, track, mount, problem, M_cr, T_b_k, J, home_sigma_mm)
     rot_res, trans_res = _pose_residuals(M_cr, T_b_k, T_k_r, T_c_b)
     T_wb = np.eye(4) if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
     cov_wb = np.zeros((6, 6)) if cov_T_w_b is None else np.asarray(cov_T_w_b, dtype=np.float64)
@@ -176,6 +182,23 @@ def _head_term(
             J_h[:, 2 * i + j] = (problem.residuals(M_cr, T_b_k) - r0) / HEAD_STEP
         problem.T_r_k[i] = saved
     out: FloatArray = -np.linalg.pinv(J.T @ J) @ J.T @ J_h
+    return out
+
+
+def _home_term(
+    views: Sequence[HandEyeView], track: Track, mount: FloatArray, problem: _Problem,
+    M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray, sigma_mm: float,
+) -> FloatArray:  # fmt: skip
+    """Covariance a common error of every view's arc length (the home's) adds."""
+    step = 1.0
+    shifted = [
+        track.local_pose(v.s_mm + step) @ mount @ head_rotation(v.pan_rad, v.tilt_rad)
+        for v in views
+    ]
+    moved = _Problem(views, shifted, problem.camera)
+    J_s = (moved.residuals(M_cr, T_b_k) - problem.residuals(M_cr, T_b_k)) / step
+    A = -np.linalg.pinv(J.T @ J) @ J.T @ J_s
+    out: FloatArray = sigma_mm**2 * np.outer(A, A)
     return out
 
 

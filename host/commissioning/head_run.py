@@ -29,6 +29,9 @@ from host.geometry.head import Rig
 from host.geometry.transforms import FloatArray, R_to_rotvec
 from host.rig import Pose6, Provenance, joint_covariance
 
+OUTLIER_FACTOR = 3.0  # a view this many times the median view RMS is dropped...
+OUTLIER_FLOOR_PX = 0.15  # ...if it is also above this (a head reading's noise is ~0.07 px)
+
 
 @dataclass(frozen=True)
 class HeadThresholds:
@@ -123,8 +126,14 @@ def judge_head(
     cov_T_w_b: FloatArray,
     limits: HeadThresholds,
     camera_cov: FloatArray | None = None,
+    home_sigma_mm: float = 0.0,
+    head_sigma_rad: float = 0.0,
 ) -> HeadOutcome:  # fmt: skip
-    """Solve M_cr and the track placement from the kept views, and judge them."""
+    """Solve M_cr and the track placement from the kept views, and judge them.
+
+    `home_sigma_mm` (the zero's σ) and `head_sigma_rad` (the head angles' read noise) widen the
+    result's covariance by what they move it (host.calibration.handeye).
+    """
     obs = hand_eye_views(views)
     nominal = (rig.T_r_c, rig.track.T_w_track)
     if len(obs) < limits.min_views:
@@ -134,8 +143,26 @@ def judge_head(
             f"need ≥ {limits.min_views}"
         )
         return HeadOutcome(False, [why], views, None, *nominal)
+    dropped = 0
     try:
-        res = calibrate_handeye(obs, rig.track, camera, rig.T_t_r, T_w_b, cov_T_w_b, camera_cov)
+        while True:  # a view whose pose reading was off (still ringing) would bias M_cr
+            res = calibrate_handeye(
+                obs, rig.track, camera, rig.T_t_r, T_w_b, cov_T_w_b, camera_cov,
+                head_sigma_rad=head_sigma_rad, home_sigma_mm=home_sigma_mm,
+            )  # fmt: skip
+            rms = res.per_view_rms_px
+            limit = max(OUTLIER_FACTOR * float(np.median(rms)), OUTLIER_FLOOR_PX)
+            keep = [o for o, e in zip(obs, rms, strict=True) if e <= limit]
+            if len(keep) == len(obs) or len(keep) < limits.min_views:
+                break
+            dropped += len(obs) - len(keep)
+            for o, e in zip(obs, rms, strict=True):
+                if e > limit:  # the page and the views table show it as such
+                    used = [v for v in views if v.status == "ok" and v.detection is not None]
+                    for v in used:
+                        if v.detection is not None and v.detection.image_points is o.image_points:
+                            v.status = "outlier"
+            obs = keep
     except (ValueError, np.linalg.LinAlgError) as exc:
         return HeadOutcome(False, [f"the solve failed: {exc}"], views, None, *nominal)
     bad = []
@@ -158,6 +185,7 @@ def judge_head(
         [
             f"RMS {res.rms_px:.3f} px over {len(obs)} views "
             f"(closed form {res.initial_rms_px:.2f} px)"
+            + (f", {dropped} outlier views dropped" if dropped else "")
         ],
         views,
         res,

@@ -35,6 +35,7 @@ from host.rig import Provenance, Scalar
 PoseAt = Callable[[int], tuple[float, float, float] | None]  # stamp → (s_mm, pan, tilt)
 SPEED_TOL = 0.05  # frames within 5 % of the commanded speed are at constant speed
 VELOCITY_WINDOW_NS = 20_000_000
+POSE_WAIT_NS = 150_000_000  # the samples after a stamp have arrived by then (link latency)
 GN_STEPS = 8
 S_STEP_MM = 0.01
 PASS_TIMEOUT_S = 30.0
@@ -104,21 +105,25 @@ async def capture_passes(
     io: RigIO, tap: FrameTap, pose_at: PoseAt, detector: BoardDetector, view: ViewTarget,
     span_mm: float, speed_mm_s: float, passes: int, progress: dict[str, Any],
 ) -> list[PassFrame]:  # fmt: skip
-    """Aim at the board from the middle, then pass back and forth, keeping every frame."""
+    """Aim at the board from the middle, then pass back and forth, keeping every frame.
+
+    The pose source's view of each frame is taken during the pass, as soon as the samples after
+    its stamp have arrived: its buffers reach back only the registration horizon (2 s), less
+    than a few passes take.
+    """
     start = ViewTarget(view.s_mm - span_mm / 2, view.pan_rad, view.tilt_rad, view.label)
     await io.go(start)
-    raw: list[tuple[Frame, float]] = []
+    raw: list[tuple[Frame, tuple[float, float, float, float] | None]] = []
     for k in range(passes):
         progress.update(phase="passing", view=k + 1, of=passes)
         direction = 1.0 if k % 2 == 0 else -1.0
         target = view.s_mm + direction * span_mm / 2 - io.home_s_mm
         io.snapshot()
         await io.controller.move_to(target, speed_mm_s)
-        raw += await _frames_until_still(io, tap, target)
+        raw += await _frames_until_still(io, tap, target, pose_at)
     progress["phase"] = "measuring"
     out = []
-    for frame, _ in raw:
-        got = _pose_and_speed(pose_at, frame.exposure_ns)
+    for frame, got in raw:
         if got is None or abs(abs(got[3]) - speed_mm_s) > SPEED_TOL * speed_mm_s:
             continue
         det = await asyncio.to_thread(detector.detect, frame.image)
@@ -128,10 +133,11 @@ async def capture_passes(
 
 
 async def _frames_until_still(
-    io: RigIO, tap: FrameTap, target_mm: float
-) -> list[tuple[Frame, float]]:
-    """Every new frame until the trolley is back at rest at its target."""
-    frames: list[tuple[Frame, float]] = []
+    io: RigIO, tap: FrameTap, target_mm: float, pose_at: PoseAt
+) -> list[tuple[Frame, tuple[float, float, float, float] | None]]:
+    """Every new frame until the trolley is back at rest at its target, with its pose."""
+    frames: list[tuple[Frame, tuple[float, float, float, float] | None]] = []
+    waiting: list[Frame] = []
     last = -1
     deadline = time.monotonic() + PASS_TIMEOUT_S
     await asyncio.sleep(0.05)  # let the move begin
@@ -139,10 +145,15 @@ async def _frames_until_still(
         frame = tap.latest()
         if frame is not None and frame.index != last:
             last = frame.index
-            frames.append((frame, time.monotonic()))
+            waiting.append(frame)
+        now = time.monotonic_ns()
+        while waiting and now > waiting[0].exposure_ns + POSE_WAIT_NS:
+            f = waiting.pop(0)
+            frames.append((f, _pose_and_speed(pose_at, f.exposure_ns)))
         snap = io.snapshot()
         pos = snap.get("position_mm")
         if snap.get("state") == "READY" and pos is not None and abs(float(pos) - target_mm) < 0.5:
+            frames += [(f, _pose_and_speed(pose_at, f.exposure_ns)) for f in waiting]
             return frames
         if time.monotonic() > deadline:
             raise AbortedError(f"pass to {target_mm:.0f} mm not done within {PASS_TIMEOUT_S:.0f} s")

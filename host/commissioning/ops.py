@@ -26,6 +26,7 @@ from host.commissioning import (
     marks_run,
     rangefinder_run,
     survey_run,
+    targets_run,
 )
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
@@ -34,7 +35,7 @@ from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
 from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
 from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
-from host.geometry.transforms import FloatArray
+from host.geometry.transforms import FloatArray, transform_points
 from host.rig import update_rig
 
 MAX_STATIONS = 64
@@ -184,8 +185,12 @@ async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     def finish(
         views: list[Any], rig: Any, camera: Any
     ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
+        env = env_of(ctx)
+        spec = env.spec()
+        home_sigma = float(spec.track.home.sigma)  # the views' arc lengths carry it
+        head_sigma = float(spec.head.angle_noise.sigma)  # ... and the head's read noise
         out = head_run.judge_head(
-            views, rig, camera, T_w_b, cov_b, limits, env_of(ctx).camera_cov()
+            views, rig, camera, T_w_b, cov_b, limits, env.camera_cov(), home_sigma, head_sigma
         )
         updates = head_run.head_rig_update(out, True) if out.passed else {}
         return out.summary(), head_run.head_page(out, limits), updates
@@ -276,8 +281,14 @@ def aims(args: Mapping[str, Any]) -> list[ViewTarget]:
 
 
 async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
-    """Start a workpiece survey: aims, optional model_points_mm, samples, noise_mm, write."""
+    """Start a workpiece survey: aims, optional model_points_mm, samples, noise_mm, write;
+    or with method "camera": model_points_mm (the targets' model coordinates), stations_mm."""
     env = env_of(ctx)
+    method = args.get("method", "rangefinder")
+    if method == "camera":
+        return _survey_workpiece_camera(ctx, args, env)
+    if method != "rangefinder":
+        raise OpError("bad_args", f"method = {method!r}: expected 'rangefinder' or 'camera'")
     targets = aims(args)
     model = args.get("model_points_mm")
     model_p = None
@@ -310,6 +321,53 @@ async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     return _start(env, "workpiece", run)
 
 
+def _survey_workpiece_camera(
+    ctx: OpContext, args: Mapping[str, Any], env: CommissioningEnv
+) -> dict[str, Any]:
+    """Start the camera survey: targets on the model's points, seen from several stations."""
+    model = args.get("model_points_mm")
+    model_p = np.array(model, dtype=np.float64) if isinstance(model, list) else np.zeros(0)
+    if model_p.ndim != 2 or model_p.shape[1:] != (3,) or not 3 <= len(model_p) <= MAX_STATIONS:
+        raise OpError("bad_args", "model_points_mm: expected 3-64 finite [x, y, z] (mm)")
+    if not np.isfinite(model_p).all():
+        raise OpError("bad_args", "model_points_mm: expected 3-64 finite [x, y, z] (mm)")
+    where = stations(args, ctx)
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None:
+        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
+    controller = ctx.controller
+    head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        tap = env.frames()
+        if tap is None:
+            raise AbortedError("the camera went away")
+        rig, camera = env.kinematics()
+        spec = env.spec()
+        rough = spec.workpiece.frame.matrix  # the drawing's: only to predict where to look
+        points_w = transform_points(rough, model_p)
+        views = targets_run.plan_views(rig, camera, points_w, where, head_limits)
+        progress["planned"] = len(views)
+        if not views:
+            raise AbortedError("no view of the targets can be planned from these stations")
+        io = RigIO(controller, tap, home_s_mm=env.home_s_mm())
+        views = await targets_run.capture(io, views, rig, camera, points_w, progress)
+        progress["phase"] = "solving"
+        placement = spec.track.placement
+        track_cov = (
+            np.array(placement.covariance, dtype=np.float64)
+            if placement.covariance is not None
+            else np.diag(np.square([*placement.sigma_rad, *placement.sigma_mm]))
+        )
+        out = await asyncio.to_thread(targets_run.judge, views, rig, camera, model_p, track_cov)
+        updates = targets_run.workpiece_update(out) if out.passed else None
+        page = targets_run.page(out)
+        return await _conclude(env, args, progress, "workpiece", out.summary(), page, updates)
+
+    return _start(env, "workpiece", run)
+
+
 async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     """Start a home survey: pan_rad, tilt_rad aiming the beam at an end wall; samples."""
     env = env_of(ctx)
@@ -318,6 +376,9 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     samples = count(args, "samples", 20, 1, 500)
     noise = number({"noise_mm": 1.0, **args}, "noise_mm", 0.0, 100.0)
     wall = number({"wall_sigma_mm": 1.0, **args}, "wall_sigma_mm", 0.0, 100.0)
+    # how far the rig file may put the beam's origin along the beam (the client's to give)
+    rig_sigma = number({"rig_sigma_mm": 0.0, **args}, "rig_sigma_mm", 0.0, 100.0)
+    max_sigma = number({"max_sigma_mm": home_run.MAX_SIGMA_MM, **args}, "max_sigma_mm", 0.01, 100.0)
     if ctx.controller is None or not ctx.controller.connected:
         raise OpError("unavailable", "the controller link is not up")
     tap = env.ranges() if env.ranges is not None else None
@@ -334,6 +395,7 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
             _survey_io(env, controller), tap, rig, scene, pan, tilt, samples, noise, wall,
             progress,
         )  # fmt: skip
+        result = with_rig_sigma(result, rig_sigma, max_sigma)
         updates = home_run.home_update(result, samples) if result["passed"] else None
         page = home_run.home_page(result)
         return await _conclude(env, args, progress, "home", result, page, updates)
@@ -446,6 +508,24 @@ async def op_calibrate_rangefinder(ctx: OpContext, args: Mapping[str, Any]) -> A
         return await _conclude(env, args, progress, "rangefinder", result, page, updates)
 
     return _start(env, "rangefinder", run)
+
+
+def with_rig_sigma(
+    result: dict[str, Any], rig_sigma_mm: float, max_sigma_mm: float
+) -> dict[str, Any]:
+    """A home survey's σ with the beam origin's own (along the beam, over |∂range/∂s|), judged
+    against `max_sigma_mm`: before the head is calibrated, that and not the reading sets it."""
+    if "sigma_mm" not in result or not math.isfinite(result.get("slope", math.nan)):
+        return result
+    sigma = math.hypot(result["sigma_mm"], rig_sigma_mm / abs(result["slope"]))
+    ok = sigma <= max_sigma_mm
+    why = (
+        f"home at s = {result['home_mm']:.2f} ± {sigma:.2f} mm (reading ± "
+        f"{result['sigma_mm']:.2f} mm, the rig's beam origin ± {rig_sigma_mm:.2f} mm)"
+        if ok
+        else f"σ {sigma:.2f} mm > {max_sigma_mm} mm"
+    )
+    return {**result, "passed": ok, "reasons": [why], "sigma_mm": sigma}
 
 
 class _NoCamera:

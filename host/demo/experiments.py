@@ -11,30 +11,43 @@ import asyncio
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from hil_sim.runner import Simulation
+from host.commissioning import home_run
+from host.commissioning.frames import FrameTap, RangeTap
+from host.commissioning.motion import RigIO
 from host.demo.feeds import TrackFeed
-from host.demo.scoring import PROBE_DEPTH_MM, Score, aimed_errors, centre_error, summary
+from host.demo.scoring import (
+    PROBE_DEPTH_MM,
+    Score,
+    aimed_errors,
+    centre_error,
+    chain_errors,
+    summary,
+    true_zero_mm,
+)
 from host.demo.world import SceneTruth, SimWorld
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import Frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import Wireframe
+from host.geometry.rangefinder import RangeScene
 from host.geometry.transforms import make_T
-from host.link import Controller
+from host.link import Controller, ControllerRejected, LinkError
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
 from protocol import ParamId
 from protocol.enums import Fault, State
 
 FloatArray = NDArray[np.float64]
+T = TypeVar("T")
 Progress = Callable[[str, float], None]
 
 # The daemon's telemetry rates (an ENCODER_SAMPLE is 26 bytes on the wire, so 115200 baud
@@ -51,7 +64,7 @@ SETTLED_PITCH_FRACTION = 0.125  # ~2 px: far above the fused error, far below a 
 HOMING_RUN_UP_MM = 100.0  # drive to just before the home switch fast, then seek it slowly
 SETTLE_S = 0.2  # ring-down after the head reports it arrived
 HEAD_TIMEOUT_S = 10.0
-DEMO_WATCHDOG_MS = 2_000
+DEMO_WATCHDOG_MS = 5_000
 HEAD_TOLERANCE_RAD = 2e-3
 ACCEL_MM_S2 = 800.0  # what the loop also uses; the stepper keeps up with margin
 MAX_FRAMES = 4  # frames per wanted observation before the point gives up
@@ -63,7 +76,8 @@ STILL_POLL_S = 0.01
 STILL_TIMEOUT_S = 3.0
 UM_PER_MM = 1000.0
 STATUS_WAIT_S = 0.3  # STATUS streams at 2-20 Hz and is sent on every state change
-SURVEY_SALT = 0x5A11  # the simulated surveys' noise stream, apart from the plant's
+FAULT_CLEAR_TRIES = 3
+HOME_SURVEY_SAMPLES = 100  # the readings of a standing trolley, averaged (σ 0.1 mm)
 
 
 @dataclass(frozen=True)
@@ -164,17 +178,37 @@ class Bench:
     truth: Truth
     home_switch_s_mm: float  # where the drawing puts the home switch (the host's rig file)
     latency_ns: int = 0
-    home_survey_sigma_mm: float = 0.0
-    survey_seed: int = 0
-    survey_rng: np.random.Generator = field(init=False)
+    home_survey_sigma_mm: float = 0.0  # the walls' survey σ (the home survey's σ)
+    ranges: RangeTap | None = None  # the controller's rangefinder readings (home survey)
+    scene: RangeScene | None = None  # the host's surveyed walls
+    range_noise_mm: float = 1.0
     # the error budget's predicted overlay σ (px) of the model's centre at (s, pan, tilt)
     predicted_px: Callable[[float, float, float], float] | None = None
     home_truth_mm: float | None = None  # true arc length of the zero (scoring only)
     collector: Collector = field(default_factory=Collector)
     snapshots: list[tuple[str, Any]] = field(default_factory=list)
+    faults_cleared: list[str] = field(default_factory=list)  # watchdog faults recovered from
+    # (the zero in use, the home survey's reading of it then): the re-homed zero's reference
+    home_reference_mm: tuple[float, float] | None = None
 
-    def __post_init__(self) -> None:
-        self.survey_rng = np.random.default_rng([self.survey_seed, SURVEY_SALT])
+    async def command(self, send: Callable[[], Awaitable[T]]) -> T:
+        """Send a motion command; if the controller refuses it because a stalled demo process
+        let its watchdog fault it, clear that fault (re-homing if the zero was lost) and send
+        it once more. Any other refusal stops the run, as it would stop an operator."""
+        try:
+            return await send()
+        except ControllerRejected as exc:
+            snap = self.ctrl.snapshot()
+            if exc.state is not State.FAULT or snap.faults != Fault.WATCHDOG:
+                raise
+        await self.ctrl.clear_fault()
+        self.faults_cleared.append("WATCHDOG")
+        await asyncio.sleep(STATUS_WAIT_S)
+        if not self.ctrl.snapshot().homed:  # the same switch and index: the same zero
+            motion = await self.ctrl.home(speed_mm_s=200.0)
+            await motion.done(timeout_s=60.0)
+            self.feed.set_home(self.feed.home_s_mm)
+        return await send()
 
     def registrars(self) -> tuple[Registrar, Registrar]:
         """Encoder-only (draws the overlay) and fused (scored only)."""
@@ -193,7 +227,9 @@ class Bench:
 
     async def move(self, s_track_mm: float, speed_mm_s: float) -> None:
         """Drive the trolley to a track position (controller coordinates = track − home)."""
-        motion = await self.ctrl.move_to(s_track_mm - self.feed.home_s_mm, speed_mm_s, ACCEL_MM_S2)
+        motion = await self.command(
+            lambda: self.ctrl.move_to(s_track_mm - self.feed.home_s_mm, speed_mm_s, ACCEL_MM_S2)
+        )
         distance = abs(s_track_mm - (self.feed.last_enc_mm or s_track_mm))
         await motion.done(timeout_s=10.0 + 2.0 * distance / speed_mm_s)
 
@@ -201,7 +237,8 @@ class Bench:
         self, s_track_mm: float, speed_mm_s: float, target_w: FloatArray
     ) -> None:
         """Drive to a track position with the head turning toward a world point on the way."""
-        await self.ctrl.set_head(*self.rig.aim(s_track_mm, target_w))
+        angles = self.rig.aim(s_track_mm, target_w)
+        await self.command(lambda: self.ctrl.set_head(*angles))
         await self.move(s_track_mm, speed_mm_s)
         await self.aim(s_track_mm, target_w)
 
@@ -211,7 +248,7 @@ class Bench:
 
     async def point_head(self, pan: float, tilt: float) -> None:
         """Turn the head to these angles and let it settle."""
-        await self.ctrl.set_head(pan, tilt)
+        await self.command(lambda: self.ctrl.set_head(pan, tilt))
         loop = asyncio.get_running_loop()
         deadline = loop.time() + HEAD_TIMEOUT_S
         while loop.time() < deadline:
@@ -230,16 +267,20 @@ async def start_host(bench: Bench, link: str) -> list[str]:
     an operator.
     """
     await bench.ctrl.set_streams(STREAM_RATES_HZ[link])
-    await asyncio.sleep(STATUS_WAIT_S)  # a STATUS has arrived: the snapshot is current
-    snap = bench.ctrl.snapshot()
-    cleared: list[str] = []
-    if snap.state is State.FAULT and snap.faults == Fault.WATCHDOG:
-        await bench.ctrl.clear_fault()
-        cleared.append("WATCHDOG")
     # The demo runs simulator, registration and host in one process on a shared machine, so
     # its loop can stall past the default 500 ms; the watchdog faults a standing controller
     # too (PROTOCOL.md §9), so give it the slack a real host on its own machine does not need.
     await bench.ctrl.set_param(ParamId.WATCHDOG_MS, DEMO_WATCHDOG_MS)
+    cleared: list[str] = []
+    for _ in range(FAULT_CLEAR_TRIES):
+        await asyncio.sleep(STATUS_WAIT_S)  # a STATUS has arrived: the snapshot is current
+        snap = bench.ctrl.snapshot()
+        if snap.state is not State.FAULT:
+            break
+        if snap.faults != Fault.WATCHDOG:
+            break  # any other fault stops the run at homing, as it would stop an operator
+        await bench.ctrl.clear_fault()
+        cleared.append("WATCHDOG")
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
     return cleared
@@ -265,25 +306,35 @@ async def wait_still(bench: Bench) -> None:
         await asyncio.sleep(STILL_POLL_S)
 
 
-async def survey_home(bench: Bench, world: SimWorld) -> float:
-    """Track position of the controller's zero, as a survey at installation would give it.
+async def survey_home(bench: Bench) -> float:
+    """Track position of the controller's zero: the daemon's `survey home` measurement.
 
-    The surveyor measures the standing trolley and reads the controller's position at that same
-    moment: here, the plant's true arc length and the firmware's encoder position, read together
-    under the simulator's lock once the trolley has stopped ringing. (Comparing the truth now
-    with the host's last, older position sample put the ring-down into the survey: a constant
-    offset of up to ~1 mm for the whole run, different from run to run.)
+    The trolley stands still (the rotor's ring-down would be read into the survey), the head
+    turns the rangefinder along the track at the end wall ahead, and the readings are solved for
+    the arc length through the host's rig and surveyed walls (host.commissioning.home_run).
     """
+    if bench.ranges is None or bench.scene is None:
+        raise LinkError("no rangefinder or no surveyed walls: the zero cannot be surveyed")
     await wait_still(bench)
+    # the drawing's home as the start: the arc lengths the solve starts from stay on the track
+    io = RigIO(bench.ctrl, FrameTap(_NoCamera()), home_s_mm=bench.home_switch_s_mm)
+    result = await home_run.survey_home(
+        io, bench.ranges, bench.rig, bench.scene, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD,
+        HOME_SURVEY_SAMPLES, bench.range_noise_mm, bench.home_survey_sigma_mm, {},
+    )  # fmt: skip
+    if not result["passed"]:
+        raise LinkError(f"the home survey failed: {'; '.join(result['reasons'])}")
+    return float(result["home_mm"])
 
-    def simultaneous(sim: Simulation) -> float:
-        return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
 
-    surveyed = float(world.with_truth(simultaneous))
-    bench.home_truth_mm = surveyed  # scoring only
-    if bench.home_survey_sigma_mm > 0.0:  # a tape survey: off by its σ, a new draw each time
-        surveyed += float(bench.survey_rng.normal(0.0, bench.home_survey_sigma_mm))
-    return surveyed
+class _NoCamera:
+    """The survey needs no frames."""
+
+    def read(self) -> None:
+        return None
+
+    def close(self) -> None:
+        return None
 
 
 async def static_experiment(
@@ -329,8 +380,12 @@ async def moving_experiment(
     progress("moving: tracking the robot", 0.0)
     loop = asyncio.get_running_loop()
     robot.start(loop.time())
-    motion = await bench.ctrl.move_to(
-        start_s + plan.moving_length_mm - bench.feed.home_s_mm, plan.moving_speed_mm_s, ACCEL_MM_S2
+    motion = await bench.command(
+        lambda: bench.ctrl.move_to(
+            start_s + plan.moving_length_mm - bench.feed.home_s_mm,
+            plan.moving_speed_mm_s,
+            ACCEL_MM_S2,
+        )
     )
     collected: list[Score] = []
 
@@ -363,16 +418,25 @@ async def drift_experiment(
 ) -> dict[str, Any]:
     """Beyond the paper: a loop with a stretched chain and tooth skips, encoder-only vs fused."""
     world.with_truth(lambda sim: sim.set_elongation(plan.elongation))
-    await bench.ctrl.set_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)  # turns while homing
+    await bench.command(lambda: bench.ctrl.set_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD))
     await bench.move(bench.home_switch_s_mm + HOMING_RUN_UP_MM, plan.travel_speed_mm_s)
     motion = await bench.ctrl.home(speed_mm_s=200.0)
     await motion.done(timeout_s=60.0)
-    bench.feed.set_home(await survey_home(bench, world))
+    # The same switch and sprocket index, but a stretched chain puts the zero elsewhere along
+    # the track (the stretch of the chain up to it): the same survey as at the start, with the
+    # same aim and rig, measures by how much; what both surveys share (rig, walls) cancels.
+    await wait_still(bench)
+    base, reference = bench.home_reference_mm or (bench.feed.home_s_mm, bench.feed.home_s_mm)
+    bench.feed.set_home(base + await survey_home(bench) - reference)
+    await wait_still(bench)
+    bench.home_truth_mm = true_zero_mm(world)  # scoring only: the stretch moved it a little
     await bench.point_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)
     start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
     marks_before = bench.feed.marks_seen
     raw_scores: list[Score] = []
     fused_scores: list[Score] = []
+    chain_scores: list[Score] = []  # the track error alone, in the host's own rig (scoring)
+    home_offset = bench.feed.home_s_mm - (bench.home_truth_mm or bench.feed.home_s_mm)
 
     centroid = bench.model.vertices.mean(axis=0)
     target = (bench.workpiece(time.monotonic_ns()) @ np.append(centroid, 1.0))[:3]
@@ -386,12 +450,17 @@ async def drift_experiment(
             )
             raw_scores.append(raw_score)
             fused_scores.append(fused_score)
+            chain_scores.append(
+                chain_errors((fused,), truth, (bench.rig, bench.camera), home_offset, target)[0]
+            )
 
     skips = sorted(start_enc + f * plan.loop_length_mm for f in plan.skips_at_fraction)
     bench.collector.sink = take
     try:
-        motion = await bench.ctrl.move_to(
-            start_enc + plan.loop_length_mm - bench.feed.home_s_mm, plan.loop_speed_mm_s, 800.0
+        motion = await bench.command(
+            lambda: bench.ctrl.move_to(
+                start_enc + plan.loop_length_mm - bench.feed.home_s_mm, plan.loop_speed_mm_s, 800.0
+            )
         )
         finished = asyncio.ensure_future(
             motion.done(timeout_s=10.0 + 2.0 * plan.loop_length_mm / plan.loop_speed_mm_s)
@@ -425,6 +494,7 @@ async def drift_experiment(
         "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),
         "encoder_only_px": summary([sc.error_px for sc in raw_scores]),
         "fused_px": summary([sc.error_px for sc in fused_scores]),
+        "fused_track_px": summary([sc.error_px for sc in chain_scores]),
         **skip_summary(fused_scores, skip_s, SETTLED_PITCH_FRACTION * pitch_px),
         "trace": {
             "s_mm": [sc.s_true_mm for sc in raw_scores],
@@ -483,13 +553,22 @@ def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:
 
 @dataclass
 class MovingRobot:
-    """The §5.3 workpiece: a robot driving along a direction at uniform speed, from a start pose."""
+    """The §5.3 workpiece: a robot driving along a direction at uniform speed, from a start pose.
+
+    It drives along an axis of its own base (the workpiece frame): `direction_w` is that axis as
+    the host's start pose puts it in the world. The true robot drives along the same axis of
+    its true frame, so a workpiece surveyed off by a rotation moves off by it too, as it would.
+    """
 
     start_pose: FloatArray
     direction_w: FloatArray
     speed_mm_s: float
     length_mm: float
     _t0: float | None = None  # when it set off, host monotonic seconds
+    direction_p: FloatArray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.direction_p = self.start_pose[:3, :3].T @ np.asarray(self.direction_w, np.float64)
 
     def start(self, t0: float) -> None:
         """Set off at t0 (the event loop's clock, which is time.monotonic)."""
@@ -501,4 +580,5 @@ class MovingRobot:
         if self._t0 is None:
             return start
         travel = min(max(0.0, t_ns / 1e9 - self._t0) * self.speed_mm_s, self.length_mm)
-        return make_T(start[:3, :3], start[:3, 3] + travel * self.direction_w)
+        out: FloatArray = start @ make_T(np.eye(3), travel * self.direction_p)
+        return out

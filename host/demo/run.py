@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -19,8 +20,9 @@ from typing import Any
 import numpy as np
 
 from hil_sim.camera import FrameClock
-from hil_sim.true_rig import parameter_errors
-from host.demo.commissioning_phase import make_commissioner, place_board
+from hil_sim.true_rig import Tolerances, parameter_errors
+from host.commissioning.frames import RangeTap
+from host.demo.commissioning_phase import feature_points, make_commissioner, place_board
 from host.demo.daemon_phase import running_daemon
 from host.demo.experiments import (
     Bench,
@@ -32,11 +34,13 @@ from host.demo.experiments import (
     start_host,
     static_experiment,
     survey_home,
+    wait_still,
 )
 from host.demo.feeds import TrackFeed
 from host.demo.propagation_report import propagation_results
 from host.demo.report_pages import write_report
 from host.demo.rigs import DemoRigs, model_of
+from host.demo.scoring import true_zero_mm
 from host.demo.world import SimCameraSource, SimWorld
 from host.experiments.budget import inputs_from_rig, overlay_sigma
 from host.frames.loop import FrameLoop
@@ -179,6 +183,8 @@ async def _experiments(
     ranger = None if scene is None else RangeFixer(rig, scene, RangeFixConfig(noise_mm=rf.noise_mm))
     feed = TrackFeed(rigs.host.track.marks.s_mm, world.sim.scenario.chain.pitch_mm, ranger)
     ctrl.add_sink(feed)
+    ranges = RangeTap()
+    ctrl.add_sink(ranges)
     bench = Bench(
         ctrl,
         rig,
@@ -189,8 +195,10 @@ async def _experiments(
         Truth(rigs.true_kinematics(), rigs.true_camera()),
         home_switch_s_mm=rigs.home_switch_mm(),
         latency_ns=round(rigs.host.camera.latency.value * 1e6),
-        home_survey_sigma_mm=SURVEY_SIGMA_MM if rigs.tolerances else 0.0,
-        survey_seed=seed,
+        home_survey_sigma_mm=SURVEY_SIGMA_MM,
+        ranges=ranges,
+        scene=scene,
+        range_noise_mm=rf.noise_mm,
         predicted_px=_budget(rigs),
     )
     clock = _frame_clock(rigs, seed)
@@ -208,17 +216,22 @@ async def _experiments(
         ident = await ctrl.connect()
         results["controller"] = {"fw_version": ident.fw_version, "boot_id": ident.boot_id}
         results["faults_cleared"] = await start_host(bench, link)
-        surveyed = await survey_home(bench, world)
-        # Commissioned: the zero surveyed then is in the rig file and the calibration (the
-        # track placement) was solved with it; the same switch and index give the same zero.
-        commissioned = results["mode"]["commissioned"]
-        feed.set_home(rigs.host.track.home.value if commissioned else surveyed)
+        # A zero surveyed at commissioning is in the rig file, and the calibration that came
+        # after it (track placement, workpiece) was solved with it; the same switch and index
+        # give the same zero. Otherwise it is surveyed now, by the rangefinder on the end wall.
+        surveyed = rigs.host.track.home.provenance.method != NOMINAL
+        reference = await survey_home(bench)  # the drift's re-homing is compared with this
+        bench.home_reference_mm = (rigs.host.track.home.value if surveyed else reference, reference)
+        feed.set_home(bench.home_reference_mm[0])
+        await wait_still(bench)
+        bench.home_truth_mm = true_zero_mm(world)  # scoring only
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}
         results["static"] = await static_experiment(bench, plan, start_s, progress)
         phase["static"] = False
         results["moving"] = await moving_experiment(bench, plan, start_s, robot, progress)
         source.render = False  # the loop is scored on poses; rendering would only cost frames
         results["drift"] = await drift_experiment(bench, world, plan, progress)
+        results["faults_cleared"] += bench.faults_cleared  # recovered from mid-run
         results["link_stats"] = _plain(ctrl.session.stats)
         results["frame_loop"] = {
             "captured": loop.stats.captured,
@@ -249,7 +262,12 @@ async def _commission(rigs: DemoRigs, world: SimWorld, rig_file: Path, seed: int
         lambda t_ns: true_pose, fps=COMMISSIONING_FPS, delivery_s=clock.delivery_s,
         clock=clock, board=setup.placed, seed=seed,
     )  # fmt: skip
-    session = make_commissioner(setup, seed, _log)
+    targets = feature_points(rigs.truth)
+
+    def stick_targets(on: bool) -> None:
+        camera.targets_p = targets if on else None
+
+    session = make_commissioner(setup, seed, _log, stick_targets)
     t0 = time.monotonic()
     try:
         async with running_daemon(world, rig_file, rig_file.parent / "daemon", camera) as daemon:
@@ -295,7 +313,11 @@ def _frame_clock(rigs: DemoRigs, seed: int) -> FrameClock:
     """Exposure stamps without tolerances; with them, the true camera's delivery stamps."""
     if not rigs.tolerances or rigs.truth.camera.trigger:
         return FrameClock(triggered=True)
-    return FrameClock(delivery_s=rigs.truth.camera.latency.value / 1e3, seed=seed)
+    # The true latency is the stamps' mean offset: delivery plus the jitter's mean |N(0, σ)|.
+    jitter_s = Tolerances().latency_jitter_ms / 1e3
+    mean_late_s = rigs.truth.camera.latency.value / 1e3
+    delivery_s = mean_late_s - jitter_s * math.sqrt(2 / math.pi)
+    return FrameClock(delivery_s=delivery_s, jitter_s=jitter_s, seed=seed)
 
 
 def _plain(stats: object) -> dict[str, Any]:

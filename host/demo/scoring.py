@@ -8,7 +8,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from host.demo.world import SceneTruth
+from hil_sim.runner import Simulation
+from host.demo.world import SceneTruth, SimWorld
 from host.frames.registrar import Registration
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
@@ -16,6 +17,17 @@ from host.geometry.transforms import invert_T, transform_points
 
 FloatArray = NDArray[np.float64]
 PROBE_DEPTH_MM = 3000.0  # overlay error is quoted for a point 3 m in front of the camera
+UM_PER_MM = 1000.0
+
+
+def true_zero_mm(world: SimWorld) -> float:
+    """Where the controller's zero truly is: the plant's arc length less the firmware's position,
+    read together under the simulator's lock (the trolley at rest). Scoring only."""
+
+    def simultaneous(sim: Simulation) -> float:
+        return float(sim.truth().s_mm - sim.firmware.position_um / UM_PER_MM)
+
+    return float(world.with_truth(simultaneous))
 
 
 @dataclass(frozen=True)
@@ -90,6 +102,38 @@ def aimed_errors(
             truth.s_mm,
             camera,
             true_camera=true_camera,
+        )
+        for reg in regs
+    ]
+
+
+def chain_errors(
+    regs: tuple[Registration, ...],
+    truth: SceneTruth,
+    host: tuple[Rig, CameraModel],
+    home_offset_mm: float,
+    target_w: FloatArray,
+) -> list[Score]:
+    """As `aimed_errors`, but against the host's own rig at the true position: the track error.
+
+    The host's rig file and the world disagree by its calibration's world-placement error (the
+    board's and walls' survey): a workpiece surveyed through the same rig carries it too, so the
+    overlay does not see it. What is left is where the registration puts the trolley along the
+    track: its arc length against the true one in the host's own zero (home_offset_mm = the
+    host's home less the true zero, constant while the chain does not skip at the zero).
+    """
+    rig, camera = host
+    s_host = truth.s_mm + home_offset_mm
+    pan, tilt = rig.aim(s_host, target_w)
+    T_ref = rig.T_w_c(s_host, pan, tilt)
+    return [
+        probe_error(
+            rig.T_w_c(
+                reg.s_mm, pan + reg.pan_rad - truth.pan_rad, tilt + reg.tilt_rad - truth.tilt_rad
+            ),
+            T_ref,
+            truth.s_mm,
+            camera,
         )
         for reg in regs
     ]

@@ -147,9 +147,11 @@ class SimCameraSource:
         clock: FrameClock = EXPOSURE_STAMPS,
         board: PlacedBoard | None = None,
         render_every: int = 1,
+        targets_p: FloatArray | None = None,
     ) -> None:
         self.world = world
         self.board = board  # a calibration board in the hall, rendered with the scene
+        self.targets_p = targets_p  # photogrammetry targets stuck on the workpiece (frame p)
         # Registration needs only the frame's stamp: rendering every frame (~0.1-0.3 s of CPU
         # for a noisy 1280x1024 image) would starve the link on a loaded machine.
         self.render_every = render_every
@@ -185,7 +187,9 @@ class SimCameraSource:
         T_w_p = self.workpiece(exposure_ns)
         image = self._blank
         if self.render and self._index % self.render_every == 0:
-            image = self._cam.render_scene(T_w_c, self.model, T_w_p, board=self.board).image
+            image = self._cam.render_scene(
+                T_w_c, self.model, T_w_p, board=self.board, targets_p=self.targets_p
+            ).image
         hold = deliver_at - time.monotonic()
         if hold > 0 and self._closed.wait(hold):
             return None

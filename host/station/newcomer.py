@@ -27,6 +27,7 @@ from host.service.daemon import Daemon
 DEMO_PORT = 8080
 WORKPIECE_W = (-300.0, -300.0, 0.0)  # where the demo's manipulator stands (as in `orbitar demo`)
 TILT_MAX_DEG = 60.0
+HOME_MIN_SLOPE = 0.7  # |∂range/∂s| of the beam the home survey is taken with
 
 
 def demo_config(link_url: str, rig_path: Path, socket_path: str, ui: dict[str, Any]) -> Config:
@@ -70,7 +71,7 @@ async def run_newcomer(host: str, port: int, seed: int) -> int:
         jobs = [
             asyncio.create_task(_aim_when_up(daemon, rig, sc.track.start_s_mm)),
             asyncio.create_task(_announce(daemon, token, viewer, workdir)),
-            asyncio.create_task(_survey_home(daemon, world)),
+            asyncio.create_task(_survey_home(daemon, str(workdir / "ctl.sock"), rigs.host)),
         ]
         code = await daemon.run()
         for task in jobs:
@@ -93,16 +94,21 @@ async def _announce(daemon: Daemon, token: str, viewer: str, workdir: Path) -> N
     sys.stdout.flush()
 
 
-async def _survey_home(daemon: Daemon, world: Any) -> None:
+async def _survey_home(daemon: Daemon, socket_path: str, spec: Any) -> None:
     """After each homing, survey where the controller's zero is, as an installer would.
 
-    The zero is the encoder index after the home switch, some way past `home_s_mm`; on a rig
-    the installation survey measures it once, here the simulated survey does (as `orbitar demo`).
+    The zero is the encoder index after the home switch, some way past the switch: the daemon's
+    `survey_home` (the rangefinder on a surveyed wall along the track) measures it and writes it
+    into the rig file, which the daemon then rereads.
     """
+    from host.commissioning.client import RunFailedError, run_op
+    from host.control.client import ControlClient
+    from host.rig import build_kinematics, build_scene
     from host.station import pose_feed
 
+    rig, scene = build_kinematics(spec), build_scene(spec)
     feed = pose_feed(daemon.controller)
-    if feed is None:
+    if feed is None or scene is None:
         return
     surveyed = False
     while True:
@@ -111,11 +117,36 @@ async def _survey_home(daemon: Daemon, world: Any) -> None:
         if not feed.homed:
             surveyed = False
         elif not surveyed and snap.get("state") == "READY":
-            position = snap.get("position_mm")
-            truth = world.with_truth(lambda sim: sim.truth())
-            if isinstance(position, float):
-                feed.rehome(float(truth.s_mm) - position)
-                surveyed = True
+            surveyed = True
+            aim = home_aim(rig, scene, float(snap.get("position_mm") or 0.0) + feed.home_s_mm,
+                           (spec.head.tilt_min_rad, math.radians(TILT_MAX_DEG)))  # fmt: skip
+            if aim is None:
+                print("(no surveyed wall along the track: the home stays the drawing's)")
+                continue
+            try:
+                async with await ControlClient.connect_unix(socket_path) as client:
+                    await run_op(client, "survey_home", {"pan_rad": aim[0], "tilt_rad": aim[1]})
+            except (OSError, RunFailedError) as exc:
+                print(f"(the home survey failed: {exc})", file=sys.stderr)
+
+
+def home_aim(
+    rig: Any, scene: Any, s_mm: float, tilt_limits: tuple[float, float]
+) -> tuple[float, float] | None:
+    """Head angles whose beam meets a surveyed surface most steeply along the track."""
+    from host.geometry.rangefinder import range_at
+
+    best, best_slope = None, HOME_MIN_SLOPE
+    for pan in (0.0, math.pi):
+        for tilt in np.linspace(tilt_limits[0], tilt_limits[1], 19):
+            a = range_at(rig, scene, s_mm - 1.0, pan, float(tilt))
+            b = range_at(rig, scene, s_mm + 1.0, pan, float(tilt))
+            if a is None or b is None:
+                continue
+            slope = abs(b.distance_mm - a.distance_mm) / 2.0
+            if slope > best_slope:
+                best, best_slope = (pan, float(tilt)), slope
+    return best
 
 
 async def _aim_when_up(daemon: Daemon, rig: Any, start_s_mm: float) -> None:

@@ -3,8 +3,8 @@
 The daemon runs as the demo runs it (firmware mirror, plant, pty link, `[rig] path` on the
 nominal rig file); the plant's rangefinder reads the true hall through the true mount and its
 mark sensor fires at the true marks (hil_sim.true_rig: mount off by 2 mm / 3 mrad, walls and
-marks by 1 mm). The installer's tape survey of the home is the demo's. Nothing of the truth
-reaches the daemon; the test compares with it afterwards.
+marks by 1 mm). The home is surveyed first as the demo does it (the rangefinder on the end
+wall). Nothing of the truth reaches the daemon; the test compares with it afterwards.
 """
 
 from __future__ import annotations
@@ -22,12 +22,12 @@ import pytest
 from host.commissioning.client import run_op
 from host.commissioning.rangefinder_run import MOUNT_AXES
 from host.control.client import ControlClient
-from host.demo.commissioning_phase import survey_zero
+from host.demo.commissioning_phase import first_home_survey
 from host.demo.daemon_phase import running_daemon
 from host.demo.rigs import DemoRigs
 from host.demo.world import SimWorld
 from host.geometry.transforms import R_to_rotvec
-from host.rig import Provenance, Scalar, load_rig, save_rig, update_rig
+from host.rig import load_rig, save_rig
 
 SEED = 5
 
@@ -72,9 +72,8 @@ async def test_mount_and_marks_on_the_simulator_through_the_real_daemon(tmp_path
                 await client.request("param_set", param="WATCHDOG_MS", value=5000)
                 await client.request("home")
                 await _until(client, lambda s: s["controller"].get("state") == "READY", "homed")
-                await asyncio.sleep(0.5)
-                home = Scalar(survey_zero(world, SEED), 1.0, Provenance.now("survey (tape)"))
-                update_rig(rig_file, {"track.home": home}, "survey home")
+                home = await run_op(client, "survey_home", first_home_survey(rigs.nominal))
+                assert home["passed"], home["reasons"]
                 # the default plan: 4 stations × 8 pans × 3 tilts (fewer leave the origin's σ
                 # over 1 mm while the placement is only known to its nominal 5 mm)
                 mount = await run_op(client, "calibrate_rangefinder", {})

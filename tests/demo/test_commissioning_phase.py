@@ -32,8 +32,17 @@ def test_board_is_under_the_track_and_its_survey_is_off_by_about_its_sigma() -> 
     off = invert_T(a.placed.T_w_b) @ a.T_w_b_surveyed
     assert 0.0 < np.linalg.norm(off[:3, 3]) < 5 * BOARD_SURVEY_SIGMA_MM
     lo, hi = rigs.travel_mm()
-    for _, args in commissioning_plan(rigs, a).steps:
-        assert all(lo < s < hi for s in args["stations_mm"])
+    steps = commissioning_plan(rigs, a).steps
+    for _, args in steps:
+        where = [
+            *args.get("stations_mm", []),
+            *([args["station_mm"]] if "station_mm" in args else []),
+        ]
+        assert all(lo < s < hi for s in where)
+    ops = [op for op, _ in steps]
+    assert ops[0] == "survey_home"  # the zero first: every later step drives in arc length
+    assert ops.index("calibrate_head") < ops.index("survey_workpiece")  # through the rig
+    assert "calibrate_latency" in ops
 
 
 @pytest.mark.slow
@@ -47,3 +56,10 @@ def test_commissioned_demo_recovers_the_true_lens_within_its_sigma(tmp_path: Pat
     for key in INTRINSIC_KEYS:
         row = results["calibration"][f"camera.{key}"]
         assert abs(row["truth"] - row["estimate"]) <= 3 * row["sigma"] + 1e-12, (key, row)
+    measured = ("camera.", "head.m_cr", "track.placement", "track.home", "workpiece.frame")
+    for key, row in results["calibration"].items():
+        if key.startswith(measured) and row["sigma"] > 0:  # a calibration reports what it achieves
+            error = row.get("error_local", row["estimate"] - row["truth"])
+            assert abs(error) <= 3 * row["sigma"], (key, row)
+    assert rig.workpiece.frame.provenance.method.startswith("survey workpiece (camera")
+    assert rig.track.home.provenance.method.startswith("survey home (rangefinder")

@@ -1,0 +1,105 @@
+"""The camera workpiece survey: targets found to a fraction of a pixel, triangulated, fitted."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hil_sim.camera import SyntheticCamera
+from host.commissioning import targets_run
+from host.commissioning.plan import ViewTarget
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.model import manipulator_wireframe
+from host.geometry.transforms import make_T, rotvec_to_R, transform_points
+
+FEATURES_P = np.array(
+    [[300.0, 0.0, 150.0], [-300.0, 0.0, 150.0], [150.0, 150.0, 950.0],
+     [80.0, 1279.0, 868.0], [70.0, 1239.0, 568.0]]
+)  # fmt: skip
+T_W_P = make_T(rotvec_to_R([0.001, -0.002, 0.003]), [-300.0, -300.0, 0.0])
+
+
+def _views(
+    rig: Rig, camera: CameraModel, T_w_p: np.ndarray, seed: int = 1
+) -> list[targets_run.TargetView]:
+    """Rendered views from three stations, targets found in them."""
+    sim = SyntheticCamera(camera, seed=seed)
+    model = manipulator_wireframe()
+    points_w = transform_points(T_w_p, FEATURES_P)
+    views = targets_run.plan_views(rig, camera, points_w, [-1200.0, -300.0, 600.0])
+    for v in views:
+        v.s_mm, v.head_rad = v.target.s_mm, (v.target.pan_rad, v.target.tilt_rad)
+        T_w_c = rig.T_w_c(v.s_mm, *v.head_rad)
+        img = sim.render_scene(T_w_c, model, T_w_p, targets_p=FEATURES_P).image
+        uv, _ = camera.project(transform_points(np.linalg.inv(T_w_c), points_w[list(v.wanted)]))
+        for k, p in zip(v.wanted, uv, strict=True):
+            got = targets_run.find_target(img, p + np.array([6.0, -4.0]))  # a rough prediction
+            if got is not None:
+                v.found[k] = got
+    return views
+
+
+def test_a_target_is_found_to_a_small_fraction_of_a_pixel() -> None:
+    camera = CameraModel()
+    sim = SyntheticCamera(camera, seed=3)
+    rig = Rig()
+    points_w = transform_points(T_W_P, FEATURES_P)
+    errors = []
+    for view in targets_run.plan_views(rig, camera, points_w, [0.0]):
+        T_w_c = rig.T_w_c(view.target.s_mm, view.target.pan_rad, view.target.tilt_rad)
+        img = sim.render_scene(T_w_c, manipulator_wireframe(), T_W_P, targets_p=FEATURES_P).image
+        uv, _ = camera.project(transform_points(np.linalg.inv(T_w_c), points_w[list(view.wanted)]))
+        for p in uv:
+            got = targets_run.find_target(img, p + np.array([-10.0, 8.0]))
+            assert got is not None
+            errors.append(float(np.hypot(*(got - p))))
+    assert len(errors) == len(FEATURES_P)
+    assert max(errors) < 0.1  # anti-aliased at 1/16 px, 1.5 DN of noise
+
+
+def test_nothing_is_found_where_there_is_no_target() -> None:
+    img = np.full((200, 200, 3), 110, np.uint8)
+    assert targets_run.find_target(img, np.array([100.0, 100.0])) is None
+
+
+def test_the_frame_comes_back_through_the_rig_it_was_seen_with() -> None:
+    rig, camera = Rig(), CameraModel()
+    views = _views(rig, camera, T_W_P)
+    out = targets_run.judge(views, rig, camera, FEATURES_P, np.zeros((6, 6)))
+    assert out.passed, out.reasons
+    assert out.fit is not None
+    assert out.covariance is not None
+    d = np.linalg.inv(out.fit.T_w_p) @ T_W_P
+    sig = np.sqrt(np.diag(out.covariance))
+    assert np.all(np.abs(d[:3, 3]) < 0.5)  # mm
+    assert np.all(np.abs(d[:3, 3]) < 4 * sig[3:] + 0.05)
+    assert out.sigma_px < 0.2
+
+
+def test_the_track_placement_uncertainty_is_carried_into_the_frame() -> None:
+    rig, camera = Rig(), CameraModel()
+    views = _views(rig, camera, T_W_P)
+    track_cov = np.diag([1e-12] * 3 + [4.0] * 3)  # translation only: 2 mm
+    out = targets_run.judge(views, rig, camera, FEATURES_P, track_cov)
+    assert out.passed
+    assert out.covariance is not None
+    assert np.sqrt(np.diag(out.covariance))[3:].min() == pytest.approx(2.0, rel=0.1)
+
+
+def test_one_view_per_target_is_refused_with_a_reason() -> None:
+    rig, camera = Rig(), CameraModel()
+    views = _views(rig, camera, T_W_P)[:1]
+    out = targets_run.judge(views, rig, camera, FEATURES_P, np.zeros((6, 6)))
+    assert not out.passed
+    assert "triangulated" in out.reasons[0]
+
+
+def test_a_view_planned_per_station_sees_every_target() -> None:
+    rig, camera = Rig(), CameraModel()
+    points_w = transform_points(T_W_P, FEATURES_P)
+    views = targets_run.plan_views(rig, camera, points_w, [0.0, 500.0])
+    for s in (0.0, 500.0):
+        seen = {k for v in views if v.target.s_mm == s for k in v.wanted}
+        assert seen == set(range(len(FEATURES_P)))
+    assert all(isinstance(v.target, ViewTarget) for v in views)
