@@ -361,7 +361,7 @@ def _survey_workpiece_camera(
             else np.diag(np.square([*placement.sigma_rad, *placement.sigma_mm]))
         )
         out = await asyncio.to_thread(targets_run.judge, views, rig, camera, model_p, track_cov)
-        updates = targets_run.workpiece_update(out) if out.passed else None
+        updates = targets_run.workpiece_update(out, spec) if out.passed else None
         page = targets_run.page(out)
         return await _conclude(env, args, progress, "workpiece", out.summary(), page, updates)
 

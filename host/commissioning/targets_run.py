@@ -33,7 +33,7 @@ from host.commissioning.survey import WorkpieceFit, fit_frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.transforms import FloatArray, invert_T, transform_points
-from host.rig import Pose6, Provenance
+from host.rig import Pose6, Provenance, RigSpec, with_block
 
 WINDOW_PX = 40  # a target is looked for this far around its predicted pixel
 EDGE_MARGIN_PX = 60  # a target predicted nearer the image edge is left for another view
@@ -257,6 +257,8 @@ class CameraSurvey:
     sigma_px: float = math.nan
     fit: WorkpieceFit | None = None
     covariance: FloatArray | None = None  # the fit's plus the track placement's
+    # ∂(frame's local error)/∂(track placement's): the survey moves with the track it used
+    track_jacobian: FloatArray | None = None
 
     def summary(self) -> dict[str, Any]:
         """Plain values for the status op and the report."""
@@ -311,6 +313,7 @@ def judge(
     T_p_k = invert_T(fit.T_w_p) @ rig.track.T_w_track
     Ad = adjoint(T_p_k)  # the track's local error moves the triangulated workpiece with it
     out.fit, out.covariance = fit, fit.covariance + Ad @ track_cov @ Ad.T
+    out.track_jacobian = Ad
     if fit.rms_mm > MAX_RESIDUAL_MM:
         why = f"fit RMS {fit.rms_mm:.2f} mm > {MAX_RESIDUAL_MM} mm (a target off its point?)"
         out.reasons = [why]
@@ -323,17 +326,25 @@ def judge(
     return out
 
 
-def workpiece_update(out: CameraSurvey) -> dict[str, Any]:
-    """`workpiece.frame` for the rig file."""
-    if not out.passed or out.fit is None or out.covariance is None:
+def workpiece_update(out: CameraSurvey, spec: RigSpec) -> dict[str, Any]:
+    """`workpiece.frame` for the rig file, and the joint covariance with its cross terms.
+
+    The frame was triangulated through the track placement of `spec`, so it shares that
+    placement's error: written as independent, the budget would count it twice (a surveyed
+    workpiece and the camera move together and the overlay does not see it).
+    """
+    if not out.passed or out.fit is None or out.track_jacobian is None:
         raise ValueError("only a passing survey is written")
-    d = np.sqrt(np.clip(np.diag(out.covariance), 0.0, None))
     prov = Provenance.now(
         "survey workpiece (camera, targets on the feature points)", out.fit.rms_mm, "mm",
         len(out.views),
     )  # fmt: skip
+    depends = {"track.placement": out.track_jacobian}
+    cov, joint = with_block(spec, "workpiece.frame", out.fit.covariance, prov, depends=depends)
+    d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     rad, mm = (float(d[0]), float(d[1]), float(d[2])), (float(d[3]), float(d[4]), float(d[5]))
-    return {"workpiece.frame": Pose6(out.fit.T_w_p, rad, mm, out.covariance, prov)}
+    frame = Pose6(out.fit.T_w_p, rad, mm, cov, prov)
+    return {"workpiece.frame": frame, "covariance": joint}
 
 
 def page(out: CameraSurvey) -> Page:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,7 @@ from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import manipulator_wireframe
 from host.geometry.transforms import make_T, rotvec_to_R, transform_points
+from host.rig import RigSpec, covariance_over, with_updates
 
 FEATURES_P = np.array(
     [[300.0, 0.0, 150.0], [-300.0, 0.0, 150.0], [150.0, 150.0, 950.0],
@@ -85,6 +88,30 @@ def test_the_track_placement_uncertainty_is_carried_into_the_frame() -> None:
     assert out.passed
     assert out.covariance is not None
     assert np.sqrt(np.diag(out.covariance))[3:].min() == pytest.approx(2.0, rel=0.1)
+
+
+def test_the_written_frame_shares_the_track_placement_error_it_was_seen_through() -> None:
+    """The rig file gets the frame's cross terms with the placement: the workpiece's error
+    relative to the track is the fit's alone, not the fit's plus twice the placement's."""
+    rig, camera = Rig(), CameraModel()
+    views = _views(rig, camera, T_W_P)
+    track_cov = np.diag([1e-6] * 3 + [4.0] * 3)  # 1 mrad, 2 mm
+    placement = dataclasses.replace(
+        RigSpec().track.placement, matrix=rig.track.T_w_track, covariance=track_cov
+    )
+    spec = dataclasses.replace(
+        RigSpec(), track=dataclasses.replace(RigSpec().track, placement=placement)
+    )
+    out = targets_run.judge(views, rig, camera, FEATURES_P, track_cov)
+    assert out.passed
+    assert out.fit is not None
+    assert out.track_jacobian is not None
+    written = with_updates(spec, targets_run.workpiece_update(out, spec))
+    joint = covariance_over(written, ["track.placement", "workpiece.frame"])
+    B = out.track_jacobian
+    relative = np.hstack([-B, np.eye(6)])  # δp − B δtrack: the frame against the track
+    assert relative @ joint @ relative.T == pytest.approx(out.fit.covariance, abs=1e-9)
+    assert np.sqrt(np.diag(joint[6:, 6:]))[3:].min() > 1.5  # absolute: the placement's 2 mm
 
 
 def test_one_view_per_target_is_refused_with_a_reason() -> None:
