@@ -151,11 +151,7 @@ def _start_capture_run(
         raise OpError(
             "bad_args", f"speed_mm_s = {args.get('speed_mm_s')!r}: expected 1-{MAX_SPEED_MM_S}"
         )
-    if ctx.controller is None or not ctx.controller.connected:
-        raise OpError("unavailable", "the controller link is not up")
-    if env.frames() is None:
-        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
-    controller = ctx.controller
+    controller = _filming(ctx, env)
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
     async def run(progress: Progress) -> dict[str, Any]:
@@ -332,11 +328,7 @@ def _survey_workpiece_camera(
     if not np.isfinite(model_p).all():
         raise OpError("bad_args", "model_points_mm: expected 3-64 finite [x, y, z] (mm)")
     where = stations(args, ctx)
-    if ctx.controller is None or not ctx.controller.connected:
-        raise OpError("unavailable", "the controller link is not up")
-    if env.frames() is None:
-        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
-    controller = ctx.controller
+    controller = _filming(ctx, env)
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
     async def run(progress: Progress) -> dict[str, Any]:
@@ -401,6 +393,15 @@ async def op_survey_home(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         return await _conclude(env, args, progress, "home", result, page, updates)
 
     return _start(env, "home", run)
+
+
+def _filming(ctx: OpContext, env: CommissioningEnv) -> Any:
+    """The controller for a run that needs camera frames (`unavailable` without either)."""
+    if ctx.controller is None or not ctx.controller.connected:
+        raise OpError("unavailable", "the controller link is not up")
+    if env.frames() is None:
+        raise OpError("unavailable", "no camera frames: the daemon has no camera source")
+    return ctx.controller
 
 
 def _ranging(ctx: OpContext, env: CommissioningEnv) -> tuple[Any, Any]:

@@ -86,7 +86,7 @@ def board_plan(
     for s in stations_mm:
         for fx, fy in targets:
             angles = aim_at_pixel(rig, camera, s, board_centre_w, size * np.array([fx, fy]))
-            if angles is None or not _within(angles, limits):
+            if angles is None or not within_limits(angles, limits):
                 continue
             plan.append(
                 ViewTarget(float(s), angles[0], angles[1], f"s={s:.0f} at ({fx:.1f}, {fy:.1f})")
@@ -94,7 +94,7 @@ def board_plan(
     return plan
 
 
-def _within(
+def within_limits(
     angles: tuple[float, float], limits: tuple[tuple[float, float], tuple[float, float]] | None
 ) -> bool:
     """Inside the head's (pan, tilt) limits."""

@@ -27,7 +27,7 @@ import numpy as np
 
 from host.calibration.handeye import adjoint
 from host.commissioning.motion import RigIO
-from host.commissioning.plan import ViewTarget, aim_at_pixel
+from host.commissioning.plan import ViewTarget, aim_at_pixel, within_limits
 from host.commissioning.report import Page, text_table
 from host.commissioning.survey import WorkpieceFit, fit_frame
 from host.geometry.camera import CameraModel
@@ -90,7 +90,7 @@ def plan_views(
                 inside = (
                     [] if angles is None else _inside(rig, camera, s, angles, points_w, pending)
                 )
-            if angles is None or not inside or not _within(angles, limits):
+            if angles is None or not inside or not within_limits(angles, limits):
                 pending.pop(0)  # cannot be seen from here
                 continue
             label = f"s={s:.0f} " + ",".join(f"T{i + 1}" for i in inside)
@@ -109,15 +109,6 @@ def _inside(
     ok = valid & (uv[:, 0] > lo) & (uv[:, 0] < camera.width - 1 - lo)
     ok &= (uv[:, 1] > lo) & (uv[:, 1] < camera.height - 1 - lo)
     return [i for i, good in zip(which, ok, strict=True) if good]
-
-
-def _within(
-    angles: tuple[float, float], limits: tuple[tuple[float, float], tuple[float, float]] | None
-) -> bool:
-    if limits is None:
-        return True
-    (p0, p1), (t0, t1) = limits
-    return p0 <= angles[0] <= p1 and t0 <= angles[1] <= t1
 
 
 def find_target(
