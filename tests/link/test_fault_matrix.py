@@ -60,7 +60,7 @@ from protocol.schema import HEADER_SIZE
 from tests.link.sim_bridge import SimBridge
 
 UART_BAUD = 115200
-N_COMMANDS = 200
+N_COMMANDS = 120  # per transport by default; the slow run sends N_COMMANDS_SLOW
 N_COMMANDS_SLOW = 3000
 # One parameter per worker: a worker's last acked value is then what the firmware must hold.
 WORKER_PARAMS = (
