@@ -35,6 +35,8 @@ from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
 from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
 from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
 from host.geometry.transforms import FloatArray, transform_points
 from host.rig import update_rig
 
@@ -155,10 +157,7 @@ def _start_capture_run(
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
     async def run(progress: Progress) -> dict[str, Any]:
-        tap = env.frames()
-        if tap is None:
-            raise AbortedError("the camera went away")
-        rig, camera = env.kinematics()
+        tap, rig, camera = _camera_now(env)
         plan = board_plan(rig, camera, centre, where, IMAGE_TARGETS, head_limits)
         progress["planned"] = len(plan)
         if not plan:
@@ -237,10 +236,7 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     centre = (T_w_b @ np.append(spec.centre_mm, 1.0))[:3]
 
     async def run(progress: Progress) -> dict[str, Any]:
-        tap = env.frames()
-        if tap is None:
-            raise AbortedError("the camera went away")
-        rig, camera = env.kinematics()
+        tap, rig, camera = _camera_now(env)
         size = np.array([camera.width - 1.0, camera.height - 1.0])
         angles = aim_at_pixel(rig, camera, station, centre, size / 2)
         if angles is None:
@@ -332,10 +328,7 @@ def _survey_workpiece_camera(
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
     async def run(progress: Progress) -> dict[str, Any]:
-        tap = env.frames()
-        if tap is None:
-            raise AbortedError("the camera went away")
-        rig, camera = env.kinematics()
+        tap, rig, camera = _camera_now(env)
         spec = env.spec()
         rough = spec.workpiece.frame.matrix  # the drawing's: only to predict where to look
         points_w = transform_points(rough, model_p)
@@ -402,6 +395,15 @@ def _filming(ctx: OpContext, env: CommissioningEnv) -> Any:
     if env.frames() is None:
         raise OpError("unavailable", "no camera frames: the daemon has no camera source")
     return ctx.controller
+
+
+def _camera_now(env: CommissioningEnv) -> tuple[FrameTap, Rig, CameraModel]:
+    """A filming run's start: the camera's frames (aborts if it went away) and the rig now."""
+    tap = env.frames()
+    if tap is None:
+        raise AbortedError("the camera went away")
+    rig, camera = env.kinematics()
+    return tap, rig, camera
 
 
 def _ranging(ctx: OpContext, env: CommissioningEnv) -> tuple[Any, Any]:
