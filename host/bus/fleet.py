@@ -51,13 +51,19 @@ class Fleet:
         self._subscriptions: list[Any] = []
 
     def start(self) -> None:
-        """Follow liveliness (with history: rigs already up are reported at once) and data."""
+        """Follow liveliness and state with history (rigs already up, and the state they last
+        published, are reported at once), and statistics as they come."""
+        import zenoh.ext
+
         from host.bus.messages import ALIVE, key
 
         liveliness = self.session.liveliness()
+        history = zenoh.ext.HistoryConfig(detect_late_publishers=True)
         self._subscriptions = [
             liveliness.declare_subscriber(key("*", ALIVE), self._on_alive, history=True),
-            self.session.declare_subscriber(key("*", "state"), self._on_data("state")),
+            zenoh.ext.declare_advanced_subscriber(
+                self.session, key("*", "state"), self._on_data("state"), history=history
+            ),
             self.session.declare_subscriber(key("*", "stats"), self._on_data("stats")),
         ]
 

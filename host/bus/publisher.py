@@ -16,6 +16,7 @@ from collections.abc import Awaitable, Callable, Mapping
 from typing import Any
 
 import zenoh
+import zenoh.ext
 
 from host.bus.fleet import Fleet
 from host.bus.messages import ALIVE, QUERIES, TOPICS, key, pack, pose_body, stamped
@@ -47,7 +48,7 @@ class BusPublisher:
         self._providers = {"status": status, "rig": rig}
         self._stats = stats
         self._session: zenoh.Session | None = None
-        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._publishers: dict[str, zenoh.Publisher | zenoh.ext.AdvancedPublisher] = {}
         self._entities: list[Any] = []  # queryables and the liveliness token
         self._loop: asyncio.AbstractEventLoop | None = None
         self._fleet: Fleet | None = None  # the other rigs of the hall, seen on this session
@@ -123,7 +124,14 @@ class BusPublisher:
         self._publishers = {
             topic: session.declare_publisher(key(self.rig, topic), congestion_control=drop)
             for topic in TOPICS
+            if topic != "state"
         }
+        # State is published on change only: its last sample stays in a cache that a fleet
+        # joining later asks for, or it would show "?" until the controller's next change.
+        self._publishers["state"] = zenoh.ext.declare_advanced_publisher(
+            session, key(self.rig, "state"), congestion_control=drop,
+            cache=zenoh.ext.CacheConfig(1), publisher_detection=True,
+        )  # fmt: skip
         self._entities = [
             session.declare_queryable(key(self.rig, name), self._answerer(name)) for name in QUERIES
         ]

@@ -13,9 +13,14 @@ from host.config_bus import BusConfig
 def zenoh_config(
     mode: str, listen: Sequence[str], connect: Sequence[str], scouting: bool
 ) -> zenoh.Config:
-    """Zenoh's configuration for these settings (multicast scouting only when asked for)."""
+    """Zenoh's configuration for these settings (multicast scouting only when asked for).
+
+    Timestamping is on because the state topic's publisher keeps its last sample for late
+    subscribers (zenoh.ext's advanced publisher requires it).
+    """
     config = zenoh.Config()
     config.insert_json5("mode", json.dumps(mode))
+    config.insert_json5("timestamping/enabled", "true")
     config.insert_json5("scouting/multicast/enabled", json.dumps(scouting))
     if listen:
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))

@@ -148,6 +148,20 @@ async def test_fleet_sees_rigs_come_and_go(rig: tuple[Rig, zenoh.Session, int]) 
         fleet.close()
 
 
+async def test_a_fleet_that_joins_late_sees_the_last_state(
+    rig: tuple[Rig, zenoh.Session, int],
+) -> None:
+    r, peer, _ = rig
+    r.bus.publish_state({"state": "FAULT", "position_mm": 812.0})  # before anyone listens
+    fleet = Fleet(peer)
+    fleet.start()
+    try:
+        await wait_until(lambda: [row["state"] for row in fleet.rows()] == ["FAULT"])
+        assert fleet.rows()[0]["position_mm"] == 812.0
+    finally:
+        fleet.close()
+
+
 async def test_orbitar_fleet_once_prints_json(rig: tuple[Rig, zenoh.Session, int]) -> None:
     r, _, port = rig
     r.bus.publish_state({"state": "READY", "position_mm": 10.0})
