@@ -82,6 +82,7 @@ def true_rig(nominal: RigSpec, seed: int, tol: Tolerances | None = None) -> RigS
     return dataclasses.replace(
         nominal,
         name=f"{nominal.name} (true rig, seed {seed})",
+        covariance=None,  # a description's calibration covariance says nothing of the truth
         track=_track(nominal.track, rng, tol),
         hall=_hall(nominal.hall, rng, tol),
         head=dataclasses.replace(

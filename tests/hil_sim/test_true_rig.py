@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -12,7 +13,7 @@ from hil_sim.runner import Simulation
 from hil_sim.true_rig import Tolerances, true_rig
 from host.geometry.head import M_CR_DEFAULT
 from host.geometry.transforms import R_to_rotvec, invert_T
-from host.rig import RigSpec, build_kinematics, loads_rig
+from host.rig import JointCovariance, RigSpec, build_kinematics, loads_rig
 from protocol import Inputs
 
 OPEN_TRACK = """
@@ -59,6 +60,11 @@ def test_tolerances_are_of_the_stated_size() -> None:
     assert (fx - 1).std() == pytest.approx(tol.focal_fraction, rel=0.2)
     assert u0.std() == pytest.approx(tol.principal_point_px, rel=0.2)
     assert z.std() == pytest.approx(tol.track_height_mm, rel=0.2)
+
+
+def test_the_true_rig_keeps_no_calibration_covariance() -> None:
+    joint = JointCovariance(("head.m_cr",), np.eye(6) * 1e-6)
+    assert true_rig(dataclasses.replace(RigSpec(), covariance=joint), 3).covariance is None
 
 
 def test_tolerances_off_is_the_nominal_rig() -> None:
