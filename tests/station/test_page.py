@@ -171,8 +171,13 @@ async def test_page_loads_offline_and_the_overlay_sits_on_the_projection(
     latency = await page.evaluate("orbitar.lastLatencyMs")
     assert latency is not None  # shown on the page
     # the page knows the daemon's clock from its pings to within half the fastest round trip
-    rtt = await page.evaluate("Math.min(...orbitar.pings.map((p) => p.rtt))")
+    rtt, error, pings = await page.evaluate(
+        "[Math.min(...orbitar.pings.map((p) => p.rtt)), orbitar.offsetErrMs, orbitar.pings.length]"
+    )
     assert -rtt / 2 <= latency < 1000
+    assert pings >= 5  # a burst after hello: a precise offset at once, not after 20 s of pings
+    assert error == pytest.approx(rtt / 2)  # and the page says how precise: latency ± error
+    await page.wait_for_function("document.querySelector('#figures').textContent.includes('±')")
     # The information summary: a part's panel, and the distance between two picked points.
     await page.get_by_role("button", name="wrist", exact=True).click()
     assert "160 × 120 × 120 mm" in await page.locator("#part-panel").text_content()
