@@ -662,6 +662,16 @@ function perViewRows(result) {
   return rows;
 }
 
+// Per-view errors while a run captures (its progress' view_errors): a board view's corners about
+// their PnP pose with the rig file's intrinsics, or a surveyed point's reading spread.
+function liveViewRows(entries) {
+  return entries.map((e) => {
+    const mm = e.spread_mm !== undefined;
+    const value = mm ? e.spread_mm : e.rms_px;
+    return { label: e.label, value: value ?? null, outlier: false, unit: mm ? "mm" : "px", note: e.status };
+  });
+}
+
 function showRun(run) {
   state.run = run || null;
   const running = Boolean(run && run.state === "running");
@@ -699,13 +709,21 @@ function showRun(run) {
   for (const text of why) { const li = document.createElement("li"); li.textContent = text; reasons.append(li); }
   if (finished && result.written) { const li = document.createElement("li"); li.textContent = `written to ${result.written}`; reasons.append(li); }
   const table = $("run-views"); table.replaceChildren();
-  const rows = finished ? perViewRows(result) : [];
+  const live = !finished && Array.isArray(p.view_errors);
+  const rows = finished ? perViewRows(result) : liveViewRows(live ? p.view_errors : []);
+  if (rows.length) {
+    const caption = document.createElement("caption");
+    const mm = rows[0].unit === "mm";
+    caption.textContent = finished ? (mm ? "residual per point" : "RMS per view, of the solution")
+      : (mm ? "reading spread per point, as ranged" : "RMS per view about its PnP pose (rig file's lens), as captured");
+    table.append(caption);
+  }
   const top = Math.max(1e-9, ...rows.map((r) => r.value ?? 0));
   for (const r of rows) {
     const tr = document.createElement("tr"); tr.dataset.view = r.label;
     const name = document.createElement("td"); name.textContent = r.label;
     const cell = document.createElement("td"); cell.style.width = "100%";
-    let text = r.outlier ? "outlier, dropped" : "not reported";
+    let text = r.outlier ? "outlier, dropped" : r.note || "not reported";
     if (r.value !== null) text = `${r.value.toFixed(3)} ${r.unit}`;
     cell.append(bar("", r.outlier ? 1 : (r.value ?? 0) / top, r.outlier ? "outlier" : "ok", null, text));
     if (r.outlier) { tr.classList.add("outlier"); name.className = "outlier"; }
