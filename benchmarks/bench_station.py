@@ -3,17 +3,23 @@
 Run: python benchmarks/bench_station.py [--seconds S] [--fps F] [--viewers N]
 Prints `metric: value` lines. A synthetic 1280×1024 camera at 30 fps feeds the daemon's own
 FrameLoop; each frame is registered (a fixed pose) and handed to the station, which draws the
-overlay and encodes it. Headless Debian Chromium pages receive the WebSocket frames and report
-exposure-to-decode latency (their clock mapped to the host's by ping); beside them, in the same
-run, a client of the MJPEG endpoint decodes each part with OpenCV and reports its latency.
-The frame loop's fps is measured with 0 and with N viewers.
+overlay and encodes it. This process is the daemon's side only: the headless Debian Chromium
+pages (driven by playwright) and the MJPEG peer (decoding each part with OpenCV) run in a child
+process, so neither the driver's messages nor the peer's decoding run on the daemon's event
+loop. The pages report exposure-to-drawn latency (their clock mapped to the daemon's by ping),
+where it went, their ping round trips, and when their first frame came after navigation; the
+MJPEG peer's latency is measured in the same window. The frame loop's fps is measured with 0
+viewers, N acknowledging clients that do not decode, and the N pages.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import json
+import math
 import os
+import sys
 import tempfile
 import threading
 import time
@@ -121,22 +127,28 @@ def loop_fps(loop: FrameLoop[Any], seconds: float) -> float:
     return (loop.stats.processed - n0) / (time.monotonic() - t0)
 
 
-async def mjpeg_client(url: str, seconds: float, out: list[float]) -> int:
-    """Read the MJPEG stream, decode each part, keep exposure-to-decode latencies."""
+async def mjpeg_client(url: str, settle_s: float, seconds: float, out: list[float]) -> int:
+    """Read the MJPEG stream, decode each part, keep exposure-to-decode latencies after settle_s.
+
+    Runs in a process of its own, on the daemon's monotonic clock (the same machine); prints
+    `connected` once the stream is open.
+    """
     frames = 0
-    deadline = time.monotonic() + seconds
     async with aiohttp.ClientSession() as http, http.get(url) as reply:
+        print("connected", flush=True)
         reader = aiohttp.MultipartReader.from_response(reply)
-        while time.monotonic() < deadline:
+        start = time.monotonic() + settle_s
+        while time.monotonic() < start + seconds:
             part = await reader.next()
             if part is None:
                 break
             assert isinstance(part, aiohttp.BodyPartReader)
             exposure_ms = float(part.headers["X-Exposure-Ms"])
-            data = await part.read()
-            cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-            out.append(time.monotonic_ns() / 1e6 - exposure_ms)
-            frames += 1
+            data = np.frombuffer(await part.read(), np.uint8)
+            cv2.imdecode(data, cv2.IMREAD_COLOR)
+            if time.monotonic() >= start:
+                out.append(time.monotonic_ns() / 1e6 - exposure_ms)
+                frames += 1
     return frames
 
 
@@ -156,82 +168,68 @@ async def ws_clients(url: str, count: int, seconds: float) -> None:
         await asyncio.gather(*(one(http) for _ in range(count)))
 
 
+async def child(*args: str) -> asyncio.subprocess.Process:
+    """This script in another process (its output piped back)."""
+    return await asyncio.create_subprocess_exec(
+        sys.executable, __file__, *args, stdout=asyncio.subprocess.PIPE
+    )
+
+
 async def daemon_side_fps(loop: FrameLoop[Any], ws_url: str, count: int, seconds: float) -> float:
     """Frame loop fps while `count` light viewers in another process take every frame."""
-    import sys
-
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--clients", ws_url, "--viewers", str(count),
-        "--seconds", str(seconds + 2.0),
-    )  # fmt: skip
+    proc = await child("--clients", ws_url, "--viewers", str(count), "--seconds", str(seconds + 2))
     await asyncio.sleep(1.0)
     fps = await asyncio.to_thread(loop_fps, loop, seconds)
     await proc.wait()
     return fps
 
 
-# The live view compared side by side for one viewer: the station as it was (WebSocket
-# permessage-deflate on, as aiohttp offers it and Chromium accepts, quality 80) beside it
-# without compression, at quality 80 and 70. Each is its own station on the same frame loop; a
-# station nobody watches draws nothing.
-VARIANTS: dict[str, dict[str, Any]] = {
-    "before_deflate_q80": {"compress": True, "jpeg_quality": 80},
-    "after_q80": {"compress": False, "jpeg_quality": 80},
-    "after_q70": {"compress": False, "jpeg_quality": 70},
-    "tried_ack_on_arrival_q80": {"compress": False, "jpeg_quality": 80, "page": "ack_on_arrival"},
-}
-# Tried, not shipped: the page acknowledges a frame on arrival, so the daemon sends the next
-# during the decode; the page decodes the newest it has (one waiting at most).
-ACK_ON_ARRIVAL_JS = """(() => {
-  let decoding = false; let waiting = null; let last = null;
-  async function drawWaiting() {
-    decoding = true;
-    while (waiting) {
-      const { header, blob, receivedMs } = waiting; waiting = null;
-      const bitmap = await createImageBitmap(blob); const decodedMs = performance.now();
-      const canvas = document.getElementById("view");
-      if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
-        canvas.width = bitmap.width; canvas.height = bitmap.height;
-      }
-      canvas.getContext("2d", { alpha: false }).drawImage(bitmap, 0, 0); bitmap.close();
-      last = drawn(header, receivedMs, decodedMs);
-    }
-    decoding = false;
-  }
-  orbitar.ws.onmessage = (ev) => {
-    if (typeof ev.data === "string") { onJson(JSON.parse(ev.data)); return; }
-    const receivedMs = performance.now(); const buffer = ev.data;
-    const headLen = new DataView(buffer).getUint32(0);
-    const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
-    const blob = new Blob([new Uint8Array(buffer, 4 + headLen)], { type: "image/jpeg" });
-    orbitar.ws.send(JSON.stringify({ type: "ack", index: header.index, latency_ms: last }));
-    last = null; waiting = { header, blob, receivedMs };
-    if (!decoding) drawWaiting();
-  };
-})()"""
-Measured = tuple[list[float], list[dict[str, float]], float]
+SETTLE_S = 2.0
+RESET = "orbitar.latencies = []; orbitar.frames = 0; orbitar.timing = []"  # pings: the last 10
 
 
-async def latency_variants(
-    browser: Any, stations: dict[str, Station], seconds: float, rounds: int
-) -> dict[str, Measured]:
-    """One viewer per variant in turn, interleaved over `rounds` (the machine's load drifts)."""
-    out: dict[str, Measured] = {k: ([], [], 0.0) for k in stations}
-    for _ in range(rounds):
-        for name, station in stations.items():
-            page = await browser.new_page(viewport={"width": 1600, "height": 1100}, bypass_csp=True)
-            await page.goto(f"http://127.0.0.1:{station.port}/#token={TOKEN}")
+async def drive(port: int, viewers: int, seconds: float) -> dict[str, Any]:
+    """The browsers' side (its own process): open the pages, then measure with an MJPEG peer.
+
+    Prints `measuring` when the window starts, so the daemon measures its frame loop in it.
+    """
+    from playwright.async_api import async_playwright
+
+    url = f"http://127.0.0.1:{port}/#token={TOKEN}"
+    async with async_playwright() as pw:
+        browser = await pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+        pages, first_wall_s, first_page_ms = [], [], []
+        for _ in range(viewers):
+            page = await browser.new_page(viewport={"width": 1600, "height": 1100},
+                                          bypass_csp=True)  # fmt: skip
+            t0 = time.monotonic()
+            await page.goto(url)
             await page.wait_for_function("orbitar.frames > 0", timeout=10_000)
-            if VARIANTS[name].get("page") == "ack_on_arrival":
-                await page.evaluate(ACK_ON_ARRIVAL_JS)
-            await asyncio.sleep(2.5)  # clock offsets settle (pings every 2 s)
-            await page.evaluate("orbitar.latencies = []; orbitar.frames = 0; orbitar.timing = []")
-            await asyncio.sleep(seconds)
-            lat, timing, frames = out[name]
-            lat += [float(v) for v in await page.evaluate("orbitar.latencies")]
-            timing += await page.evaluate("orbitar.timing")
-            out[name] = (lat, timing, frames + float(await page.evaluate("orbitar.frames")))
-            await page.close()
+            first_wall_s.append(time.monotonic() - t0)
+            first_page_ms.append(await page.evaluate("orbitar.marks"))
+            pages.append(page)
+        peer = await child("--mjpeg", str(port), "--seconds", str(seconds))
+        assert peer.stdout is not None
+        await peer.stdout.readline()  # connected: it settles as the pages do
+        await asyncio.sleep(SETTLE_S)  # and the pages' clock offsets settle (pings every 2 s)
+        for page in pages:
+            await page.evaluate(RESET)
+        print("measuring", flush=True)
+        await asyncio.sleep(seconds)
+        out: dict[str, Any] = {"lat": [], "delivered": [], "timing": [], "rtt": [], "err": []}
+        out["held"] = []
+        for page in pages:
+            out["lat"] += await page.evaluate("orbitar.latencies")
+            out["delivered"].append(float(await page.evaluate("orbitar.frames")) / seconds)
+            out["timing"] += await page.evaluate("orbitar.timing")
+            out["rtt"] += await page.evaluate("orbitar.pings.map((p) => p.rtt)")
+            out["held"] += await page.evaluate("orbitar.pings.map((p) => p.held ?? null)")
+            out["err"].append(await page.evaluate("orbitar.offsetErrMs"))
+        await browser.close()
+    mjpeg = json.loads(await peer.stdout.read())
+    await peer.wait()
+    out.update(mjpeg=mjpeg, first_wall_s=first_wall_s)
+    out["first_page_ms"] = first_page_ms
     return out
 
 
@@ -241,92 +239,63 @@ def pct(values: list[float], q: float) -> float:
 
 
 async def run(seconds: float, fps: float, viewers: int, width: int, height: int) -> None:
-    """The whole measurement."""
-    from playwright.async_api import async_playwright
-
+    """The whole measurement: this process is the daemon's side only."""
     directory = Path(tempfile.mkdtemp(prefix="bench-station-"))
     config = bench_config(width, height, directory)
     station = Station(config, OpContext(None))
     await station.start()
-    others = {}
-    for name, variant in VARIANTS.items():
-        other = Station(
-            bench_config(width, height, directory, jpeg_quality=variant["jpeg_quality"]),
-            OpContext(None),
-        )
-        other.ws_compress = bool(variant["compress"])
-        await other.start()
-        others[name] = other
     source = SyntheticCamera(width, height, fps)
     outputs: list[Callable[[Registration], None]] = [station.on_registration]
-    outputs += [o.on_registration for o in others.values()]
     loop: FrameLoop[Registration] = FrameLoop(source, registrar(config), outputs)
     frames_task = asyncio.create_task(loop.run())
-    url = f"http://127.0.0.1:{station.port}/#token={TOKEN}"
     try:
         await asyncio.sleep(1.0)
         fps0 = await asyncio.to_thread(loop_fps, loop, seconds)
         ws_url = f"http://127.0.0.1:{station.port}/ws"
         fps_light = await daemon_side_fps(loop, ws_url, viewers, seconds)
-        async with async_playwright() as pw:
-            browser = await pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-            pages, first_frame_s = [], []
-            for _ in range(viewers):
-                page = await browser.new_page(viewport={"width": 1600, "height": 1100},
-                                              bypass_csp=True)  # fmt: skip
-                t0 = time.monotonic()
-                await page.goto(url)
-                await page.wait_for_function("orbitar.frames > 0", timeout=10_000)
-                first_frame_s.append(time.monotonic() - t0)
-                pages.append(page)
-            await asyncio.sleep(2.0)  # clock offsets settle (pings every 2 s)
-            for page in pages:
-                await page.evaluate(
-                    "orbitar.latencies = []; orbitar.frames = 0; orbitar.timing = []"
-                )
-            cpu0, hub0 = os.times(), station.hub.stats.encoded
-            mjpeg: list[float] = []
-            mjpeg_url = f"http://127.0.0.1:{station.port}/mjpeg?token={TOKEN}"
-            mjpeg_task = asyncio.create_task(mjpeg_client(mjpeg_url, seconds, mjpeg))
-            fps_n = await asyncio.to_thread(loop_fps, loop, seconds)
-            mjpeg_frames = await mjpeg_task
-            cpu1, hub1 = os.times(), station.hub.stats.encoded
-            lat: list[float] = []
-            delivered = []
-            timing: list[dict[str, float]] = []
-            for page in pages:
-                lat += [float(v) for v in await page.evaluate("orbitar.latencies")]
-                delivered.append(float(await page.evaluate("orbitar.frames")) / seconds)
-                timing += await page.evaluate("orbitar.timing")
-            variants = await latency_variants(browser, others, seconds, 2)
-            await browser.close()
+        driver = await child("--driver", str(station.port), "--viewers", str(viewers),
+                             "--seconds", str(seconds))  # fmt: skip
+        assert driver.stdout is not None
+        while (line := await driver.stdout.readline()) and line.strip() != b"measuring":
+            pass
+        cpu0, hub0 = os.times(), station.hub.stats.encoded
+        fps_n = await asyncio.to_thread(loop_fps, loop, seconds)
+        cpu1, hub1 = os.times(), station.hub.stats.encoded
+        got = json.loads((await driver.stdout.read()).decode().strip().splitlines()[-1])
+        await driver.wait()
     finally:
         loop.stop()
         source.close()
         await frames_task
-        for st in (station, *others.values()):
-            await st.close()
+        await station.close()
     encoded = max(1, hub1 - hub0)
     cpu_s = (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system)
+    lat = got["lat"]
     print(f"resolution: {width}x{height}")
     print(f"camera_fps: {fps:.1f}")
     print(f"viewers: {viewers}")
     print(f"ws_latency_ms_p50: {pct(lat, 50):.1f}")
     print(f"ws_latency_ms_p95: {pct(lat, 95):.1f}")
-    breakdown("ws", timing)
-    for name, (v_lat, v_timing, v_frames) in variants.items():
-        print(f"one_viewer_{name}_latency_ms_p50: {pct(v_lat, 50):.1f}")
-        print(f"one_viewer_{name}_latency_ms_p95: {pct(v_lat, 95):.1f}")
-        print(f"one_viewer_{name}_delivered_fps: {v_frames / (2 * seconds):.1f}")
-        print(f"one_viewer_{name}_encode_cpu_ms: {others[name].hub.stats.cpu_ms_mean():.2f}")
-        breakdown(f"one_viewer_{name}", v_timing)
-    print(f"mjpeg_latency_ms_p50: {pct(mjpeg, 50):.1f}")
-    print(f"mjpeg_latency_ms_p95: {pct(mjpeg, 95):.1f}")
-    print(f"ws_delivered_fps_per_viewer: {np.mean(delivered):.1f}")
-    print(f"mjpeg_delivered_fps: {mjpeg_frames / seconds:.1f}")
-    print(f"first_frame_s_max: {max(first_frame_s):.2f}")
+    breakdown("ws", got["timing"])
+    print(f"ws_ping_rtt_ms_min: {pct(got['rtt'], 0):.1f}")
+    print(f"ws_ping_rtt_ms_p50: {pct(got['rtt'], 50):.1f}")
+    held = [h for h in got["held"] if h is not None]
+    print(f"ws_pong_held_ms_p50: {pct(held, 50):.1f}  # in the daemon: ping read to pong written")
+    print(f"ws_pong_held_ms_max: {max(held, default=math.nan):.1f}")
+    errors = [e for e in got["err"] if e is not None]  # None: a page that does not say
+    print(f"ws_clock_offset_error_ms_max: {max(errors, default=math.nan):.1f}  # ± on latency")
+    print(f"ws_frame_rtt_ms_p50: {station.station_stats().get('frame_rtt_ms_p50')}  # sent, acked")
+    print(f"mjpeg_latency_ms_p50: {pct(got['mjpeg'], 50):.1f}")
+    print(f"mjpeg_latency_ms_p95: {pct(got['mjpeg'], 95):.1f}")
+    print(f"ws_delivered_fps_per_viewer: {np.mean(got['delivered']):.1f}")
+    print(f"mjpeg_delivered_fps: {len(got['mjpeg']) / seconds:.1f}")
+    marks = [m or {} for m in got["first_page_ms"]]
+    for mark in ("open", "hello", "frame_in", "frame"):
+        worst = max(m.get(mark) or float("nan") for m in marks)
+        print(f"first_{mark}_ms_max: {worst:.0f}  # from navigation start, in the page")
+    print(f"first_frame_s_max: {max(got['first_wall_s']):.2f}  # goto to frames > 0, driver side")
     print(f"encode_cpu_ms_per_frame: {station.hub.stats.cpu_ms_mean():.2f}")
-    print(f"process_cpu_ms_per_frame: {cpu_s * 1e3 / encoded:.2f}  # includes the camera, loop")
+    print(f"daemon_cpu_ms_per_frame: {cpu_s * 1e3 / encoded:.2f}  # includes the camera, loop")
     print(f"frame_loop_fps_0_viewers: {fps0:.2f}")
     print(f"frame_loop_fps_{viewers}_viewers: {fps_n:.2f}")
     print(f"frame_loop_fps_cost_pct: {100.0 * (fps0 - fps_n) / fps0:.2f}  # browsers share the CPU")
@@ -356,9 +325,20 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=1280)
     parser.add_argument("--height", type=int, default=1024)
     parser.add_argument("--clients", metavar="WS_URL", help=argparse.SUPPRESS)
+    parser.add_argument("--driver", metavar="PORT", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--mjpeg", metavar="PORT", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.clients:
         asyncio.run(ws_clients(args.clients, args.viewers, args.seconds))
+        return
+    if args.mjpeg:
+        latencies: list[float] = []
+        url = f"http://127.0.0.1:{args.mjpeg}/mjpeg?token={TOKEN}"
+        asyncio.run(mjpeg_client(url, SETTLE_S, args.seconds, latencies))
+        print(json.dumps(latencies))
+        return
+    if args.driver:
+        print(json.dumps(asyncio.run(drive(args.driver, args.viewers, args.seconds))))
         return
     asyncio.run(run(args.seconds, args.fps, args.viewers, args.width, args.height))
 

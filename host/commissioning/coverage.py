@@ -37,6 +37,7 @@ class ViewCoverage:
     y: float
     size: float
     skew: float
+    rms_px: float = math.nan  # the corners' RMS about that PnP pose: the view's error, live
 
     def as_dict(self) -> dict[str, float]:
         """Plain values."""
@@ -54,15 +55,16 @@ def view_coverage(
     border = math.sqrt(area)  # ROS: the board's centre can only range over the image less its size
     x = _clip((float(uv[:, 0].mean()) - border / 2) / max(camera.width - border, 1.0))
     y = _clip((float(uv[:, 1].mean()) - border / 2) / max(camera.height - border, 1.0))
-    ok, rvec, _ = cv2.solvePnP(
-        np.asarray(object_points, np.float64), uv, camera.K, camera.dist, flags=cv2.SOLVEPNP_SQPNP
-    )
-    skew = 0.0
+    obj = np.asarray(object_points, np.float64)
+    ok, rvec, tvec = cv2.solvePnP(obj, uv, camera.K, camera.dist, flags=cv2.SOLVEPNP_SQPNP)
+    skew, rms = 0.0, math.nan
     if ok:
         normal = cv2.Rodrigues(rvec)[0][:, 2]
         tilt = math.acos(min(1.0, abs(float(normal[2]))))
         skew = _clip(tilt / SKEW_FULL_RAD)
-    return ViewCoverage(x, y, _clip(size), skew)
+        seen = cv2.projectPoints(obj, rvec, tvec, camera.K, camera.dist)[0].reshape(-1, 2)
+        rms = math.sqrt(float(np.mean(np.sum((seen - uv) ** 2, axis=1))))
+    return ViewCoverage(x, y, _clip(size), skew, rms)
 
 
 def progress(views: Sequence[ViewCoverage]) -> dict[str, float]:

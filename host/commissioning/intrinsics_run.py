@@ -140,8 +140,16 @@ async def capture(
             blurred=sum(v.status == "blurred" for v in views),
             not_found=sum(v.status == "not found" for v in views),
             coverage=coverage.progress(kept),
+            view_errors=[view_error(v) for v in views],
         )
     return views
+
+
+def view_error(view: CapturedView) -> dict[str, Any]:
+    """A captured view for the live progress: its status and its PnP RMS (px) if kept."""
+    rms = view.cover.rms_px if view.cover is not None else float("nan")
+    return {"label": view.target.label, "status": view.status,
+            "rms_px": round(rms, 4) if np.isfinite(rms) else None}  # fmt: skip
 
 
 def judge(

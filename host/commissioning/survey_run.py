@@ -61,6 +61,9 @@ async def measure(
         )
         point = T_w_l[:3, 3] + T_w_l[:3, 2] * d
         out.append(SurveyedPoint(aim, d, float(np.std(readings)), point))
+        progress["view_errors"] = [
+            {"label": p.aim.label, "status": "ok", "spread_mm": round(p.spread_mm, 3)} for p in out
+        ]
     return out
 
 

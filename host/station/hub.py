@@ -24,6 +24,7 @@ from host.station.render import EncodedView, ViewInput, ViewRenderer
 log = logging.getLogger(__name__)
 
 WINDOW = 256  # recent frames kept for the rates and percentiles
+FRESH_NS = 500_000_000  # a frame this recent is a new viewer's first
 
 
 class ViewerSlot:
@@ -122,11 +123,12 @@ class FrameHub:
         self._wake.set()
 
     def attach(self, ghost: bool | None = None) -> ViewerSlot:
-        """A new viewer; it gets the latest frame at once, so the first image is immediate."""
+        """A new viewer; a recent frame is its first at once (nothing is drawn while unwatched,
+        so an older one would show the past: the next view is drawn for it instead)."""
         slot = ViewerSlot(self.ghost if ghost is None else ghost)
         self._viewers.add(slot)
         first = self._latest_by_ghost.get(slot.ghost, self.latest)
-        if first is not None:
+        if first is not None and time.monotonic_ns() - first.encoded_ns < FRESH_NS:
             slot.offer(first)
         return slot
 

@@ -76,8 +76,6 @@ StatusProvider = Callable[[], Mapping[str, Any]]
 class Station:
     """The station's HTTP server, its frame hub and its pages."""
 
-    ws_compress = False  # True only for the benchmark's before-and-after
-
     def __init__(
         self,
         config: Config,
@@ -103,6 +101,7 @@ class Station:
         self.stats = {"pages": 0, "refused": 0, "deadman_stops": 0, "mjpeg_clients": 0}
         self.stats["cut_off"] = 0
         self.latencies_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)
+        self.frame_rtt_ms: deque[float] = deque(maxlen=LATENCY_WINDOW)  # frame sent → its ack
         self.port: int | None = None
         # Report links carry this instead of a token: only pages that said hello are told it.
         self.reports_key = secrets.token_urlsafe(18)
@@ -252,6 +251,7 @@ class Station:
             "jpeg_ready_ms_p50": _quantile(sorted(hub.ready_ms), 0.5),
             "latency_ms_p50": _quantile(ordered, 0.5),
             "latency_ms_p95": _quantile(ordered, 0.95),
+            "frame_rtt_ms_p50": _quantile(sorted(self.frame_rtt_ms), 0.5),
         }
 
     def _ghost(self, T_w_c: FloatArray | None, s_mm: float | None) -> FloatArray | None:
@@ -326,7 +326,7 @@ class Station:
         """A page's live connection."""
         # liveness: the page's pings; no permessage-deflate: frames are JPEG, deflating them
         # costs the daemon and the browser CPU for nothing (benchmarks/bench_station.py)
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, compress=self.ws_compress)
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, compress=False)
         await ws.prepare(request)
         session = PageSession(self, ws)
         self.sessions.add(session)

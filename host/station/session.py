@@ -230,6 +230,8 @@ class PageSession:
 
     def _on_ack(self, data: dict[str, Any]) -> None:
         """The page has drawn the frame: record its latency, allow the next."""
+        if self._awaiting_ack:
+            self.station.frame_rtt_ms.append((time.monotonic() - self._sent_at_s) * 1e3)
         self._awaiting_ack = False
         latency = data.get("latency_ms")
         if isinstance(latency, int | float) and 0 <= latency < 60_000:
@@ -276,7 +278,10 @@ class PageSession:
         """Send everything that may go now."""
         while True:
             if self._replies:
-                await self.ws.send_json(self._replies.popleft())
+                message = self._replies.popleft()
+                if message.get("type") == "pong":  # its time in this queue is not network delay
+                    message["sent_ms"] = time.monotonic_ns() / 1e6
+                await self.ws.send_json(message)
             elif self._status is not None:
                 status, self._status = self._status, None
                 await self.ws.send_json(status)

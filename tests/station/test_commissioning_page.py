@@ -111,6 +111,20 @@ async def test_an_intrinsics_run_started_on_the_page_fills_the_bars_and_cancels(
         assert running["progress"]["accepted"] >= 1
         text = await page.locator("#run-state").text_content()
         assert "capturing" in text or "solving" in text, text
+        # Each captured view's error is shown as it is captured, not only at the run's end.
+        await page.wait_for_function("orbitar.run.progress.view_errors.length >= 2")
+        errors = (await page.evaluate("orbitar.run.progress.view_errors"))[:2]
+        await page.wait_for_function("document.querySelectorAll('#run-views tr').length >= 2")
+        caption = await page.locator("#run-views caption").text_content()
+        assert "as captured" in caption, caption
+        for i, error in enumerate(errors):
+            row = await page.locator("#run-views tr").nth(i).text_content()
+            assert error["label"] in row, (row, error)
+            if error["rms_px"] is None:
+                assert error["status"] in row, (row, error)
+            else:  # a kept view of the simulated board fits its PnP pose within a pixel
+                assert 0.0 < error["rms_px"] < 1.0, error
+                assert f"{error['rms_px']:.3f} px" in row, (row, error)
         await page.screenshot(path=str(ARTIFACTS / "commissioning_running.png"), full_page=True)
         # A viewer sees the run but may neither start nor cancel one.
         assert await viewer.evaluate("document.body.classList.contains('viewer')")

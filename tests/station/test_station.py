@@ -298,6 +298,39 @@ async def test_nothing_is_drawn_without_viewers() -> None:
         await hub.close()
 
 
+async def test_a_new_viewer_gets_a_recent_frame_at_once_and_never_an_old_one() -> None:
+    camera = CameraModel(width=64, height=48)
+    hub = FrameHub(ViewRenderer(camera, box(10, 10, 10), np.eye(4), load_parts(None)))
+    hub.start()
+    try:
+        first = hub.attach()
+        hub.submit(ViewInput(1, time.monotonic_ns(), None, None))
+        await asyncio.wait_for(first.take(), 5.0)
+        assert hub.attach().frame is not None  # just drawn: the newcomer's first image at once
+        assert hub.latest is not None
+        hub.latest = dataclasses.replace(hub.latest, encoded_ns=time.monotonic_ns() - 10**10)
+        hub._latest_by_ghost.clear()
+        assert hub.attach().frame is None  # drawn 10 s ago: the next view is drawn for it
+    finally:
+        await hub.close()
+
+
+async def test_a_pong_says_when_the_ping_came_and_when_the_pong_left(
+    station: tuple[Station, MemoryController],
+) -> None:
+    st, _ = station
+    async with aiohttp.ClientSession() as http, http.ws_connect(f"{st.url}ws") as ws:
+        await hello(ws, VIEWER)
+        before_ms = time.monotonic_ns() / 1e6
+        await ws.send_json({"type": "ping", "t": 12.5})
+        pong = await next_json(ws, "pong")
+        after_ms = time.monotonic_ns() / 1e6
+    assert pong["t"] == 12.5
+    # The daemon's clock at receipt and at sending: the page takes their difference, the time
+    # the pong waited behind other messages, out of the round trip (as NTP does).
+    assert before_ms <= pong["host_ms"] <= pong["sent_ms"] <= after_ms
+
+
 def test_the_builtin_sidecar_names_p1_to_p5() -> None:
     parts = load_parts(BUILTIN_SIDECAR)
     assert [p.name for p in parts.points] == ["P1", "P2", "P3", "P4", "P5"]

@@ -5,6 +5,7 @@
 
 const HOLD_PERIOD_MS = 100;       // dead-man heartbeat while a jog button is held
 const PING_PERIOD_MS = 2000;      // clock offset between this page and the daemon
+const PING_BURST = 5;             // pings back to back after hello: a precise offset at once
 const RECONNECT_MIN_MS = 500;
 const RECONNECT_MAX_MS = 5000;
 const TAP_SLOP_PX = 8;
@@ -17,6 +18,7 @@ const state = {
   points: {}, frameSize: [640, 480], status: null, jog: null, reqId: 0, picked: [],
   reconnectMs: RECONNECT_MIN_MS, pendingHead: null, deadman: 0, lastReply: null,
   ghost: null, ghostDrawn: false, viewAck: null, sigma: null, run: null, timing: [],
+  offsetErrMs: null, burst: 0, marks: {},  // first open, hello, frame_in, frame: ms from navigation
 };
 window.orbitar = state;  // for the browser tests and the curious
 
@@ -34,7 +36,7 @@ function connect() {
   const ws = new WebSocket(`${scheme}://${location.host}/ws`);
   ws.binaryType = "arraybuffer";
   state.ws = ws;
-  ws.onopen = () => ws.send(JSON.stringify({ type: "hello", token: state.token }));
+  ws.onopen = () => { mark("open"); ws.send(JSON.stringify({ type: "hello", token: state.token })); };
   ws.onmessage = (ev) => (typeof ev.data === "string" ? onJson(JSON.parse(ev.data)) : onFrame(ev.data));
   ws.onclose = (ev) => onClosed(ev);
 }
@@ -47,6 +49,9 @@ function onClosed(ev) {
   setTimeout(connect, state.reconnectMs);
   state.reconnectMs = Math.min(state.reconnectMs * 2, RECONNECT_MAX_MS);
 }
+
+// The first time this page got somewhere, on the clock that starts at navigation.
+function mark(name) { if (state.marks[name] === undefined) state.marks[name] = performance.now(); }
 
 function send(msg) {
   if (state.ws && state.ws.readyState === WebSocket.OPEN) { state.ws.send(JSON.stringify(msg)); return true; }
@@ -75,6 +80,7 @@ function onJson(msg) {
 }
 
 function onHello(msg) {
+  mark("hello");
   state.connected = true; state.refused = false; state.role = msg.role; state.info = msg;
   state.reconnectMs = RECONNECT_MIN_MS;
   sessionStorage.setItem("orbitar-token", state.token);
@@ -85,7 +91,7 @@ function onHello(msg) {
   setupHead(msg.head_deg); drawPlan(msg.track); showParts(msg.parts); setupRuns(msg.runs || []);
   if (state.ghost === null) state.ghost = Boolean(msg.ghost);
   $("ghost").checked = state.ghost; sendView();
-  ping();
+  state.burst = PING_BURST; ping();
 }
 
 // The rig file changed (a calibration was written): new intrinsics, limits and track plan.
@@ -100,11 +106,17 @@ function setConn(ok, text) {
 
 function ping() { send({ type: "ping", t: performance.now() }); }
 
+// As NTP: the daemon stamps the ping's receipt and the pong's sending, so the time the pong
+// waited in the daemon (behind a frame being written) is not taken for network delay. The
+// fastest round trip of the last ten gives the offset, within half that round trip.
 function onPong(msg) {
-  const now = performance.now(); const rtt = now - msg.t;
-  state.pings.push({ rtt, offset: msg.host_ms - (msg.t + rtt / 2) });
+  const now = performance.now(); const held = (msg.sent_ms ?? msg.host_ms) - msg.host_ms;
+  const rtt = now - msg.t - held;
+  state.pings.push({ rtt, held, offset: (msg.host_ms + held / 2) - (msg.t + (now - msg.t) / 2) });
   if (state.pings.length > 10) state.pings.shift();
-  state.offsetMs = state.pings.reduce((a, b) => (b.rtt < a.rtt ? b : a)).offset;  // fastest wins
+  const best = state.pings.reduce((a, b) => (b.rtt < a.rtt ? b : a));  // fastest wins
+  state.offsetMs = best.offset; state.offsetErrMs = best.rtt / 2;
+  if (state.burst > 1) { state.burst -= 1; ping(); } else state.burst = 0;
 }
 
 // ---- frames ------------------------------------------------------------------------------
@@ -115,6 +127,7 @@ function onPong(msg) {
 // createImageBitmap decodes off the main thread.
 async function onFrame(buffer) {
   const receivedMs = performance.now();
+  mark("frame_in");
   const view = new DataView(buffer);
   const headLen = view.getUint32(0);
   const header = JSON.parse(new TextDecoder().decode(new Uint8Array(buffer, 4, headLen)));
@@ -127,9 +140,11 @@ async function onFrame(buffer) {
     if (canvas.width !== bitmap.width || canvas.height !== bitmap.height) {
       canvas.width = bitmap.width; canvas.height = bitmap.height;
     }
-    canvas.getContext("2d", { alpha: false }).drawImage(bitmap, 0, 0);
-    bitmap.close();
+    // The decoded bitmap becomes the canvas' image as it is: no copy drawn on the main thread,
+    // which also reads the pongs (a 2D drawImage per frame kept their round trip at 40-75 ms).
+    canvas.getContext("bitmaprenderer").transferFromImageBitmap(bitmap);
     latency = drawn(header, receivedMs, decodedMs);
+    mark("frame");
   } catch (err) {
     toast(`frame ${header.index} not shown: ${err}`);
   } finally {
@@ -410,7 +425,7 @@ function onStatus(msg) {
     ["overlay σ (predicted)", sigmaText(), state.sigma && state.sigma.px !== null ? "" : "bad"],
     ["camera", `${src.kind || "none"} ${src.state || ""} ${src.detail || ""}`, src.state && src.state !== "running" ? "bad" : ""],
     ["frame loop", `${fmt(svc.fps, 1, " fps")}, dropped ${frames.dropped ?? 0}`],
-    ["view", `${fmt(pageFps(), 1, " fps")}, ${fmt(state.lastLatencyMs, 0, " ms")} latency`],
+    ["view", `${fmt(pageFps(), 1, " fps")}, ${latencyText()} latency`],
     ["encoder", `${fmt(stn.encode_fps, 1, " fps")}, ${fmt(stn.encode_cpu_ms, 1, " ms")}/frame, dropped ${stn.encode_dropped ?? 0}`],
     ["viewers", `${stn.viewers ?? 0}`],
   ];
@@ -455,7 +470,13 @@ function showFigures() {
   const ctrl = ((state.status || {}).status || {}).controller || {};
   const sg = state.sigma; const age = sigmaAgeS();
   const sigma = !sg || sg.px === null ? "σ unknown" : `σ ${sg.px.toFixed(1)} px (${age === null ? "?" : age.toFixed(1)} s)`;
-  setText($("figures"), `${fmt(pageFps(), 0)} fps · ${fmt(state.lastLatencyMs, 0, " ms")} · ${fmt(ctrl.position_mm, 0, " mm")} · ${sigma}`);
+  setText($("figures"), `${fmt(pageFps(), 0)} fps · ${latencyText()} · ${fmt(ctrl.position_mm, 0, " mm")} · ${sigma}`);
+}
+
+// The page's latency with what the clock offset allows of it.
+function latencyText() {
+  if (state.lastLatencyMs === null) return "— ms";
+  return `${state.lastLatencyMs.toFixed(0)} ± ${Math.max(1, Math.ceil(state.offsetErrMs ?? 0))} ms`;
 }
 
 function faultText(ctrl) {
@@ -641,6 +662,16 @@ function perViewRows(result) {
   return rows;
 }
 
+// Per-view errors while a run captures (its progress' view_errors): a board view's corners about
+// their PnP pose with the rig file's intrinsics, or a surveyed point's reading spread.
+function liveViewRows(entries) {
+  return entries.map((e) => {
+    const mm = e.spread_mm !== undefined;
+    const value = mm ? e.spread_mm : e.rms_px;
+    return { label: e.label, value: value ?? null, outlier: false, unit: mm ? "mm" : "px", note: e.status };
+  });
+}
+
 function showRun(run) {
   state.run = run || null;
   const running = Boolean(run && run.state === "running");
@@ -678,13 +709,21 @@ function showRun(run) {
   for (const text of why) { const li = document.createElement("li"); li.textContent = text; reasons.append(li); }
   if (finished && result.written) { const li = document.createElement("li"); li.textContent = `written to ${result.written}`; reasons.append(li); }
   const table = $("run-views"); table.replaceChildren();
-  const rows = finished ? perViewRows(result) : [];
+  const live = !finished && Array.isArray(p.view_errors);
+  const rows = finished ? perViewRows(result) : liveViewRows(live ? p.view_errors : []);
+  if (rows.length) {
+    const caption = document.createElement("caption");
+    const mm = rows[0].unit === "mm";
+    caption.textContent = finished ? (mm ? "residual per point" : "RMS per view, of the solution")
+      : (mm ? "reading spread per point, as ranged" : "RMS per view about its PnP pose (rig file's lens), as captured");
+    table.append(caption);
+  }
   const top = Math.max(1e-9, ...rows.map((r) => r.value ?? 0));
   for (const r of rows) {
     const tr = document.createElement("tr"); tr.dataset.view = r.label;
     const name = document.createElement("td"); name.textContent = r.label;
     const cell = document.createElement("td"); cell.style.width = "100%";
-    let text = r.outlier ? "outlier, dropped" : "not reported";
+    let text = r.outlier ? "outlier, dropped" : r.note || "not reported";
     if (r.value !== null) text = `${r.value.toFixed(3)} ${r.unit}`;
     cell.append(bar("", r.outlier ? 1 : (r.value ?? 0) / top, r.outlier ? "outlier" : "ok", null, text));
     if (r.outlier) { tr.classList.add("outlier"); name.className = "outlier"; }
