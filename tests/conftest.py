@@ -4,15 +4,29 @@ the HIL rig fixtures."""
 from __future__ import annotations
 
 import asyncio
+import compileall
 import threading
 import time
 from collections.abc import AsyncIterator, Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pytest
 
 if TYPE_CHECKING:
     from tests.hil_rig import Rigs
+
+
+PACKAGES = ("protocol", "firmware", "host", "hil_sim", "tests")
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """Compile the project's modules once, first: where PYTHONDONTWRITEBYTECODE is set (as on
+    our machines) each daemon, emulator and CLI process a test starts compiled them again."""
+    root = Path(__file__).resolve().parents[1]
+    for package in PACKAGES:
+        if (root / package).is_dir():
+            compileall.compile_dir(root / package, quiet=2)
 
 
 @pytest.fixture(autouse=True)

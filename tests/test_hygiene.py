@@ -49,7 +49,11 @@ def _run(pytester: pytest.Pytester, case: str) -> pytest.RunResult:
     pytester.makeini(INI)
     pytester.makeconftest(CONFTEST.read_text(encoding="utf-8"))
     pytester.makepyfile(**{f"test_{case}": CASES[case]})
-    return pytester.runpytest_subprocess("-p", "no:cacheprovider", "-q")
+    # Without hypothesis' plugin, whose package pytest would assertion-rewrite on every import
+    # (most of such a run's time; the cases use no hypothesis).
+    return pytester.runpytest_subprocess(
+        "-p", "no:cacheprovider", "-p", "no:hypothesispytest", "-q"
+    )
 
 
 def test_fixture_fails_a_test_leaking_a_task(pytester: pytest.Pytester) -> None:

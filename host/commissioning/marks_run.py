@@ -39,7 +39,7 @@ from host.commissioning.range_model import (
     kinematics_of,
     predict,
 )
-from host.commissioning.report import Page, text_table
+from host.commissioning.report import Page, pyplot, text_table
 from host.geometry.head import Rig
 from host.geometry.rangefinder import range_at
 from host.rig import Marks, Provenance, RigSpec, travel_limits_mm
@@ -286,7 +286,7 @@ def marks_update(
 
 def marks_page(result: dict[str, Any], limits: MarkThresholds) -> Page:
     """The report page: per-mark table and the change from the listed positions."""
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     pg = Page("Reference marks survey", result["passed"], result["reasons"], limits.describe(),
               data=result)  # fmt: skip

@@ -43,7 +43,7 @@ from host.commissioning.range_model import (
     local,
     predict,
 )
-from host.commissioning.report import Page, text_table
+from host.commissioning.report import Page, pyplot, text_table
 from host.geometry.head import Rig
 from host.geometry.transforms import FloatArray
 from host.rig import Pose6, Provenance, RigSpec, travel_limits_mm
@@ -348,7 +348,7 @@ def mount_update(fit: MountFit) -> dict[str, Any]:
 
 def mount_page(fit: MountFit, limits: MountThresholds) -> Page:
     """The report page: the change with its σ, residuals per pose and per surface."""
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     summary = fit.summary()
     pg = Page("Rangefinder mount", fit.passed, fit.reasons, limits.describe(), data=summary)

@@ -15,11 +15,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt
-
 from host.geometry.transforms import FloatArray
 
 Row = Sequence[str | int | float]
@@ -37,6 +32,17 @@ class Page:
     figures: list[tuple[str, Any]] = field(default_factory=list)  # caption, matplotlib figure
     preformatted: list[tuple[str, str]] = field(default_factory=list)  # caption, text
     data: dict[str, Any] = field(default_factory=dict)
+
+
+def pyplot() -> Any:
+    """matplotlib's pyplot on the Agg backend, imported at the first figure: the daemon imports
+    this module at start, and pyplot was ~40 % of its start-up imports."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def run_dir(root: Path, kind: str) -> Path:
@@ -69,7 +75,7 @@ def write_page(directory: Path, page: Page) -> Path:
     for i, (caption, fig) in enumerate(page.figures):
         name = f"figure{i + 1}.png"
         fig.savefig(directory / name, dpi=90, bbox_inches="tight")
-        plt.close(fig)
+        pyplot().close(fig)
         parts.append(
             f"<h2>{html.escape(caption)}</h2><img src='{name}' alt='{html.escape(caption)}'>"
         )
@@ -92,7 +98,7 @@ def text_table(header: Sequence[str], rows: Sequence[Row]) -> str:
 
 def residual_figure(points_uv: FloatArray, residuals_px: FloatArray, size: tuple[int, int]) -> Any:
     """Residual vectors over the image (scaled up) and their scatter."""
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a, b) = pyplot().subplots(1, 2, figsize=(11, 4.2))
     if len(points_uv):
         scale = 0.15 * size[0] / max(float(abs(residuals_px).max()), 1e-9)
         du, dv = residuals_px[:, 0] * scale, residuals_px[:, 1] * scale
@@ -110,7 +116,7 @@ def residual_figure(points_uv: FloatArray, residuals_px: FloatArray, size: tuple
 
 def per_view_figure(labels: Sequence[str], errors_px: Sequence[float], limit_px: float) -> Any:
     """A bar per view with the threshold drawn."""
-    fig, ax = plt.subplots(figsize=(11, 3.2))
+    fig, ax = pyplot().subplots(figsize=(11, 3.2))
     ax.bar(range(len(errors_px)), errors_px)
     ax.axhline(limit_px, color="r", linestyle="--", label=f"threshold {limit_px} px")
     ax.set_xticks(range(len(labels)))

@@ -1,8 +1,9 @@
 """The station under test: emulator and daemon as processes, and a headless Debian Chromium.
 
 The emulator and the daemon (tests.hil_rig) are started once per module (they need no event
-loop) and the browser once per test. Browser tests are skipped, saying why, only where no
-Chromium exists; `.ci/run` and scripts/setup-venv.sh install Debian's chromium when they can.
+loop), and the browser once per session (tests.station.remote_browser) with fresh pages for each
+test. Browser tests are skipped, saying why, only where no Chromium exists; `.ci/run` and
+scripts/setup-venv.sh install Debian's chromium when they can.
 """
 
 from __future__ import annotations
@@ -13,13 +14,14 @@ import shutil
 import subprocess
 import time
 import urllib.request
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from tests.hil_rig import HilRig, Rigs, free_port
+from tests.station.remote_browser import BrowserThread
 
 CHROMIUM = os.environ.get("ORBITAR_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = [
@@ -124,21 +126,25 @@ def browser_missing() -> str | None:
     return None
 
 
-@pytest.fixture
-async def browser() -> AsyncIterator[Any]:
-    """A headless Debian Chromium (never a downloaded browser)."""
+@pytest.fixture(scope="session")
+def browser_thread() -> Iterator[BrowserThread]:
+    """The session's headless Debian Chromium (never a downloaded browser), on its own thread."""
     why = browser_missing()
     if why:
         pytest.skip(why)
-    from playwright.async_api import async_playwright
-
     ARTIFACTS.mkdir(exist_ok=True)
-    async with async_playwright() as pw:
-        chromium = await pw.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        try:
-            yield chromium
-        finally:
-            await chromium.close()
+    thread = BrowserThread(CHROMIUM, CHROMIUM_ARGS)
+    try:
+        yield thread
+    finally:
+        thread.stop()
+
+
+@pytest.fixture
+async def browser(browser_thread: BrowserThread) -> AsyncIterator[Any]:
+    """The browser for one test: its pages are fresh contexts, all closed after the test."""
+    yield browser_thread.browser()
+    await browser_thread.close_contexts()
 
 
 def dump(path: Path, data: Any) -> None:

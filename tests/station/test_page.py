@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any
@@ -107,7 +108,12 @@ async def moving_stops_within(client: ControlClient, limit_s: float) -> float:
 async def aim_head_at(client: ControlClient, rig: StationRig, point_w: np.ndarray) -> None:
     """Point the head at a world point and wait until the head samples say it is there."""
     config = load_config(rig.dir / "orbitar.toml")
-    s_mm = (await client.request("link_stats"))["track_s_mm"]
+
+    async def position() -> list[float]:  # NaN until the first encoder sample after link-up
+        s = (await client.request("link_stats"))["track_s_mm"]
+        return [s] if s is not None and math.isfinite(s) else []
+
+    [s_mm] = await until(position, 10.0, "the trolley's position")
     pan, tilt = build_rig(config).aim(s_mm, point_w)
     await client.request("head", pan_rad=pan, tilt_rad=tilt)
 
