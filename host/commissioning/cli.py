@@ -84,7 +84,11 @@ def add_parsers(subparsers: Any) -> None:
     )
     aims_help = "rangefinder: JSON [[s_mm, pan_rad, tilt_rad], ...], the beam on each feature"
     wp.add_argument("--aims", metavar="FILE", help=aims_help)
-    model_help = "JSON [[x, y, z], ...]: the same features in the model's frame, mm"
+    model_help = (
+        "the features in the model's frame, mm: a JSON [[x, y, z], ...], the model's parts "
+        "sidecar (its P1..Pn), or the model's name (builtin:manipulator, or its file: the "
+        "sidecar beside it)"
+    )
     wp.add_argument("--model-points", metavar="FILE", help=model_help)
     stations_help = (
         "camera: arc lengths to view the targets from (default: where the trolley is; "
@@ -225,11 +229,31 @@ def run_survey_workpiece(args: argparse.Namespace) -> int:
         else:
             req.update(aims=_json(args.aims), samples=args.samples)
         if args.model_points:
-            req["model_points_mm"] = _json(args.model_points)
+            req["model_points_mm"] = model_points(args.model_points)
     except (OSError, ValueError) as exc:
         return _fail(str(exc))
     req["write"] = not args.no_write
     return follow(args, "survey_workpiece", req)
+
+
+def model_points(where: str) -> Any:
+    """`--model-points`: a JSON list of points, a parts sidecar, or a model (its sidecar)."""
+    from host.station.parts import PartsError, load_parts, parse_parts, sidecar_path
+
+    try:
+        if where.startswith("builtin:") or not where.endswith(".json"):
+            path = sidecar_path(where)
+            parts = load_parts(path, required=True)
+        else:
+            table = _json(where)
+            if isinstance(table, list):
+                return table
+            parts = parse_parts(table)
+    except PartsError as exc:
+        raise ValueError(f"--model-points {where}: {exc}") from exc
+    if not parts.points:
+        raise ValueError(f"--model-points {where}: the sidecar lists no feature points")
+    return [list(p.position_mm) for p in parts.points]
 
 
 def run_survey_home(args: argparse.Namespace) -> int:
