@@ -78,7 +78,13 @@ def test_open_track_demo_registers_within_what_the_sensors_allow(
     assert load_rig(out / "rig.toml") == load_rig(GANTRY)  # what the host read
 
 
-@pytest.mark.parametrize("path", [GANTRY, LOOP], ids=["open-gantry", "stage-loop"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        pytest.param(GANTRY, id="open-gantry"),
+        pytest.param(LOOP, id="stage-loop", marks=pytest.mark.slow),
+    ],
+)
 def test_the_board_is_placed_for_the_rigs_lens_clear_of_its_workpiece(path: Path) -> None:
     """The open gantry's workpiece lay behind a board placed by the paper's rule: its edges,
     drawn over the board, left no corners at the board's own station. The board now goes where
