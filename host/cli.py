@@ -70,7 +70,7 @@ COMMANDS: dict[str, Command] = {
     "survey": Command(
         "host.commissioning.cli",
         "add_parsers",
-        "commissioning: survey with the rangefinder",
+        "commissioning: survey with the rangefinder (or the camera)",
     ),
 }
 

@@ -68,21 +68,52 @@ def add_parsers(subparsers: Any) -> None:
     rf.add_argument("--samples", type=int, default=5, help="readings averaged per pose")
     rf.add_argument("--max-rms", type=float, help="pass threshold, mm (default 2.0)")
     rf.set_defaults(handler=run_calibrate_rangefinder)
-    survey = subparsers.add_parser("survey", help="commissioning: survey with the rangefinder")
+    survey = subparsers.add_parser(
+        "survey", help="commissioning: survey with the rangefinder (or the camera)"
+    )
     ssub = survey.add_subparsers(dest="survey_command", required=True)
-    wp = _common(ssub.add_parser("workpiece", help="the workpiece frame from its feature points"))
-    aims_help = "JSON [[s_mm, pan_rad, tilt_rad], ...]: where the beam meets each feature"
-    wp.add_argument("--aims", required=True, metavar="FILE", help=aims_help)
-    model_help = "JSON [[x, y, z], ...]: the same features in the model (least squares)"
+    wp = _common(
+        ssub.add_parser("workpiece", help="the workpiece frame from its feature points"), False
+    )
+    method_help = (
+        "rangefinder: the beam on each feature (--aims); camera: targets stuck on the "
+        "features, triangulated from --stations (needs --model-points)"
+    )
+    wp.add_argument(
+        "--method", choices=("rangefinder", "camera"), default="rangefinder", help=method_help
+    )
+    aims_help = "rangefinder: JSON [[s_mm, pan_rad, tilt_rad], ...], the beam on each feature"
+    wp.add_argument("--aims", metavar="FILE", help=aims_help)
+    model_help = (
+        "the features in the model's frame, mm: a JSON [[x, y, z], ...], the model's parts "
+        "sidecar (its P1..Pn), or the model's name (builtin:manipulator, or its file: the "
+        "sidecar beside it)"
+    )
     wp.add_argument("--model-points", metavar="FILE", help=model_help)
+    stations_help = (
+        "camera: arc lengths to view the targets from (default: where the trolley is; "
+        "give 2-3 around the workpiece, for rays that cross)"
+    )
+    wp.add_argument("--stations", type=float, nargs="+", metavar="S_MM", help=stations_help)
     wp.add_argument("--samples", type=int, default=10, help="readings averaged per point")
     wp.set_defaults(handler=run_survey_workpiece)
-    home = _common(ssub.add_parser("home", help="the controller's zero on the track, from a wall"))
+    home = _common(
+        ssub.add_parser("home", help="the controller's zero on the track, from a wall"), False
+    )
     home.add_argument("pan_deg", type=float, help="head pan putting the beam on an end wall")
     home.add_argument("tilt_deg", type=float, help="head tilt")
     home.add_argument("--samples", type=int, default=20, help="readings averaged")
+    home.add_argument("--rig-sigma", type=float, metavar="MM",
+                      help="how well the rig file places the beam's origin along the beam "
+                      "(default 0: a calibrated head; before `calibrate head`, the placement's "
+                      "and the mount's σ combined, e.g. 5.8)")  # fmt: skip
+    home.add_argument("--max-sigma", type=float, metavar="MM",
+                      help="pass threshold, mm (default 2; 10 for a first zero before the head "
+                      "is calibrated)")  # fmt: skip
     home.set_defaults(handler=run_survey_home)
-    marks = _common(ssub.add_parser("marks", help="each reference mark's arc length, from a wall"))
+    marks = _common(
+        ssub.add_parser("marks", help="each reference mark's arc length, from a wall"), False
+    )
     marks.add_argument("--samples", type=int, default=20, help="readings averaged per mark")
     marks.add_argument("--cross-speed", type=float, help="speed across each mark, mm/s (100)")
     marks.add_argument("--aim-deg", type=float, nargs=2, metavar=("PAN", "TILT"),
@@ -93,11 +124,12 @@ def add_parsers(subparsers: Any) -> None:
     marks.set_defaults(handler=run_survey_marks)
 
 
-def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+def _common(p: argparse.ArgumentParser, speed: bool = True) -> argparse.ArgumentParser:
     p.add_argument("--socket", default=default_socket(), help="daemon control socket")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.add_argument("--no-write", action="store_true", help="report only, leave the rig file alone")
-    p.add_argument("--speed", type=float, help="trolley speed between stations, mm/s")
+    if speed:  # the surveys move at the daemon's own speeds
+        p.add_argument("--speed", type=float, help="trolley speed between stations, mm/s")
     return p
 
 
@@ -182,21 +214,57 @@ def run_posed(args: argparse.Namespace, op: str) -> int:
 
 
 def run_survey_workpiece(args: argparse.Namespace) -> int:
-    """`orbitar survey workpiece --aims FILE [--model-points FILE]`."""
+    """`orbitar survey workpiece --aims FILE [--model-points FILE]`, or `--method camera
+    --model-points FILE [--stations S_MM ...]`."""
+    camera = args.method == "camera"
+    if camera and not args.model_points:
+        return _fail("--method camera needs --model-points: where the targets sit in the model")
+    if not camera and not args.aims:
+        return _fail("--aims FILE is needed (or --method camera with --model-points)")
+    req: dict[str, Any] = {"method": args.method}
     try:
-        req: dict[str, Any] = {"aims": _json(args.aims), "samples": args.samples}
+        if camera:
+            if args.stations:
+                req["stations_mm"] = list(args.stations)
+        else:
+            req.update(aims=_json(args.aims), samples=args.samples)
         if args.model_points:
-            req["model_points_mm"] = _json(args.model_points)
+            req["model_points_mm"] = model_points(args.model_points)
     except (OSError, ValueError) as exc:
         return _fail(str(exc))
     req["write"] = not args.no_write
     return follow(args, "survey_workpiece", req)
 
 
+def model_points(where: str) -> Any:
+    """`--model-points`: a JSON list of points, a parts sidecar, or a model (its sidecar)."""
+    from host.station.parts import PartsError, load_parts, parse_parts, sidecar_path
+
+    try:
+        if where.startswith("builtin:") or not where.endswith(".json"):
+            path = sidecar_path(where)
+            parts = load_parts(path, required=True)
+        else:
+            table = _json(where)
+            if isinstance(table, list):
+                return table
+            parts = parse_parts(table)
+    except PartsError as exc:
+        raise ValueError(f"--model-points {where}: {exc}") from exc
+    if not parts.points:
+        raise ValueError(f"--model-points {where}: the sidecar lists no feature points")
+    return [list(p.position_mm) for p in parts.points]
+
+
 def run_survey_home(args: argparse.Namespace) -> int:
     """`orbitar survey home PAN_DEG TILT_DEG` (degrees here, radians on the socket)."""
-    req = {"pan_rad": math.radians(args.pan_deg), "tilt_rad": math.radians(args.tilt_deg)}
+    req: dict[str, Any] = {
+        "pan_rad": math.radians(args.pan_deg), "tilt_rad": math.radians(args.tilt_deg),
+    }  # fmt: skip
     req.update(samples=args.samples, write=not args.no_write)
+    for key, value in (("rig_sigma_mm", args.rig_sigma), ("max_sigma_mm", args.max_sigma)):
+        if value is not None:
+            req[key] = value
     return follow(args, "survey_home", req)
 
 

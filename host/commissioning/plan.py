@@ -5,11 +5,15 @@ only aims the head). From the nominal rig and camera, each station along the tra
 angles that put the board's centre at chosen places in the image (centre and four corners), so
 the views spread the board over the image; stations at different distances along the track
 vary its size and its tilt to the optical axis. The aiming is Newton's method on the board
-centre's pixel, two angles for two coordinates, started from `Rig.aim`.
+centre's pixel, two angles for two coordinates, started from `Rig.aim`. A pan/tilt head reaches
+most directions two ways (pan + π with the tilt mirrored): a view whose first solution lies
+outside the head's limits is aimed the other way, and a pan is taken modulo 2π into them, so a
+head whose tilt only turns one way (or whose pan stops short of ±π) still gets its views.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -46,10 +50,13 @@ class ViewTarget:
 
 
 def aim_at_pixel(
-    rig: Rig, camera: CameraModel, s_mm: float, point_w: FloatArray, target_uv: FloatArray
-) -> tuple[float, float] | None:
-    """Head angles putting a world point at a pixel (nominal rig); None if it cannot be done."""
-    pan, tilt = rig.aim(s_mm, point_w)
+    rig: Rig, camera: CameraModel, s_mm: float, point_w: FloatArray, target_uv: FloatArray,
+    start: tuple[float, float] | None = None,
+) -> tuple[float, float] | None:  # fmt: skip
+    """Head angles putting a world point at a pixel (nominal rig); None if it cannot be done.
+
+    Newton from `start` (default `Rig.aim`, the smaller head excursion)."""
+    pan, tilt = rig.aim(s_mm, point_w) if start is None else start
     for _ in range(AIM_STEPS):
         uv = _pixel(rig, camera, s_mm, pan, tilt, point_w)
         if uv is None:
@@ -85,13 +92,52 @@ def board_plan(
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     for s in stations_mm:
         for fx, fy in targets:
-            angles = aim_at_pixel(rig, camera, s, board_centre_w, size * np.array([fx, fy]))
-            if angles is None or not within_limits(angles, limits):
+            angles = aim_within(rig, camera, s, board_centre_w, size * np.array([fx, fy]), limits)
+            if angles is None:
                 continue
             plan.append(
                 ViewTarget(float(s), angles[0], angles[1], f"s={s:.0f} at ({fx:.1f}, {fy:.1f})")
             )
     return plan
+
+
+def aim_within(
+    rig: Rig, camera: CameraModel, s_mm: float, point_w: FloatArray, target_uv: FloatArray,
+    limits: tuple[tuple[float, float], tuple[float, float]] | None,
+) -> tuple[float, float] | None:  # fmt: skip
+    """`aim_at_pixel` within the head's limits: either way of reaching the direction, the pan
+    taken modulo 2π; None when neither fits."""
+    first = rig.aim(s_mm, point_w)
+    for start in (first, other_way(rig, first)):
+        angles = aim_at_pixel(rig, camera, s_mm, point_w, target_uv, start)
+        if angles is None:
+            continue
+        angles = wrap_pan(angles, limits)
+        if within_limits(angles, limits):
+            return angles
+    return None
+
+
+def other_way(rig: Rig, angles: tuple[float, float]) -> tuple[float, float]:
+    """The head's second way to the same optical axis: pan + π, the tilt mirrored about the
+    tilt that brings the camera's axis onto the pan axis (`Rig.aim`'s two branches)."""
+    axis = rig.T_r_c[:3, 2]
+    base = math.atan2(-float(axis[0]), float(axis[2]))
+    return math.remainder(angles[0] + math.pi, math.tau), 2.0 * base - angles[1]
+
+
+def wrap_pan(
+    angles: tuple[float, float], limits: tuple[tuple[float, float], tuple[float, float]] | None
+) -> tuple[float, float]:
+    """The same pan ± 2π when that is what lies within the limits (a head that turns past ±π)."""
+    if limits is None:
+        return angles
+    (p0, p1), _ = limits
+    pan = angles[0]
+    for turn in (0.0, math.tau, -math.tau):
+        if p0 <= pan + turn <= p1:
+            return pan + turn, angles[1]
+    return angles
 
 
 def within_limits(

@@ -23,22 +23,40 @@ import numpy as np
 from hil_sim.camera import PlacedBoard
 from host.calibration.board import BoardSpec
 from host.commissioning.client import CommissioningPlan, RunFailedError, run_op
+from host.commissioning.plan import IMAGE_TARGETS, board_plan
 from host.control.client import ControlClient
 from host.demo.daemon_phase import RunningDaemon
 from host.demo.experiments import DEMO_WATCHDOG_MS, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD
-from host.demo.rigs import DemoRigs
+from host.demo.rigs import DemoRigs, model_of
 from host.demo.world import SimWorld
-from host.geometry.transforms import FloatArray, euler_zyx, make_T, rot_x, rotvec_to_R
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.transforms import (
+    FloatArray,
+    euler_zyx,
+    make_T,
+    rot_x,
+    rotvec_to_R,
+    transform_points,
+)
 from host.rig import RigSpec
 from host.station.parts import load_parts, sidecar_path
 from protocol.enums import Inputs
 
-BOARD = BoardSpec(squares_x=8, squares_y=6, square_mm=70.0, marker_mm=52.0)
+BOARD = BoardSpec(squares_x=8, squares_y=6, square_mm=70.0, marker_mm=52.0)  # as printed
 BOARD_ALONG_MM = 1200.0  # the stand: this far along the track from the power-on position
-BOARD_ASIDE_MM = 400.0  # ... and this far to the left of it
-BOARD_BELOW_MM = 2500.0  # ... this far below the track, at most
-BOARD_FILL = 0.64  # ... or nearer, so that its width fills this much of the image (a wide lens)
-BOARD_MIN_Z_MM = 500.0
+BOARD_ASIDE_MM = 400.0  # ... and this far to the left of it (or the right: `place_board`)
+# ... and as far below the track as makes the board's longer side fill this much of the image's
+# shorter side seen from above it (the board turns in the image with the pan, and the views that
+# put it near a corner must still see most of it)
+BOARD_FILL = 0.8
+BOARD_MIN_BELOW_MM = 1500.0  # nearer, the stations 1 m to either side would see it too steeply
+BOARD_MIN_Z_MM = 500.0  # the lowest stand
+BOARD_MAX_CROSSED = 0.2  # ... and in no view the workpiece's edges cross more of its markers
+BOARD_HALL_CLEARANCE_MM = 300.0  # the stand stays this far inside the hall's walls
+# where else the stand may go along the track, after the first place (mm from it), when the
+# drawing's workpiece lies behind the board in a planned view (its edges would cross the board)
+BOARD_ALONG_CHOICES_MM = (0.0, 600.0, -600.0, 1200.0, -1200.0)
 BOARD_SURVEY_SIGMA_MM = 1.0
 BOARD_SURVEY_SIGMA_RAD = 1e-3
 STATION_SPACING_MM = 1000.0  # intrinsics and head views from the board's station and around it
@@ -68,27 +86,158 @@ class BoardSetup:
     placed: PlacedBoard  # the truth, rendered by the simulator's camera
     T_w_b_surveyed: FloatArray  # what the host is told
     s_mm: float  # the track position above it
+    board: BoardSpec = BOARD  # as printed for this rig's lens and track height
 
 
 def place_board(rigs: DemoRigs, seed: int) -> BoardSetup:
-    """A board face up under the track, turned a little; its survey is off by 1 mm, 1 mrad."""
+    """A board face up under the track, turned a little; its survey is off by 1 mm, 1 mrad.
+
+    The installer works from the drawing (the nominal rig) and the live view: the board is as
+    far below the track as its lens wants (`board_for_lens`), beside the track, and of the
+    places along and to either side (`BOARD_ALONG_CHOICES_MM`) inside the hall, the first
+    where no planned view from its stations has the workpiece's edges across the board and
+    every view can be planned within the head's limits (the least bad otherwise).
+    """
     rng = np.random.default_rng([seed, 0xB0A2D])
-    hi = rigs.travel_mm()[1]
-    s = min(rigs.start_s_mm() + BOARD_ALONG_MM, hi - STATION_SPACING_MM)
-    T = rigs.host_kinematics().track.pose(s)  # the installer places it by the drawing
-    left_w = -T[:3, 1]  # the trolley's y points right of travel
-    centre = T[:3, 3] + BOARD_ASIDE_MM * left_w
-    cam = rigs.host.camera
-    width_mm = BOARD.squares_x * BOARD.square_mm
-    fill_mm = cam.intrinsics.get("fx") * width_mm / (BOARD_FILL * cam.width)
-    centre[2] = max(BOARD_MIN_Z_MM, centre[2] - min(BOARD_BELOW_MM, fill_mm))
-    yaw = float(np.arctan2(T[1, 0], T[0, 0])) + rng.uniform(-0.3, 0.3)
-    R = rot_x(np.pi) @ euler_zyx(yaw, rng.normal(0, 0.05), rng.normal(0, 0.05))
-    T_true = make_T(R, centre - R @ BOARD.centre_mm)
+    turn = (rng.uniform(-0.3, 0.3), rng.normal(0, 0.05), rng.normal(0, 0.05))
     w = rng.normal(0.0, BOARD_SURVEY_SIGMA_RAD, 3)
     t = rng.normal(0.0, BOARD_SURVEY_SIGMA_MM, 3)
+    rig, camera = rigs.host_kinematics(), rigs.host_camera()
+    board, below = board_for_lens(rigs)
+    lo, hi = rigs.travel_mm()
+    first = rigs.start_s_mm() + BOARD_ALONG_MM
+    places = []
+    for side in (1.0, -1.0):
+        for along in BOARD_ALONG_CHOICES_MM:
+            s = min(max(first + along, lo + STATION_SPACING_MM), hi - STATION_SPACING_MM)
+            T = rig.track.pose(s)  # the installer places it by the drawing
+            left_w = -T[:3, 1]  # the trolley's y points right of travel
+            centre = T[:3, 3] + side * BOARD_ASIDE_MM * left_w
+            centre[2] = max(BOARD_MIN_Z_MM, centre[2] - below)
+            if not inside_hall(rigs.host, centre):
+                continue
+            yaw = float(np.arctan2(T[1, 0], T[0, 0])) + turn[0]
+            R = rot_x(np.pi) @ euler_zyx(yaw, turn[1], turn[2])
+            T_w_b = make_T(R, centre - R @ board.centre_mm)
+            badness = board_view_conflicts(rigs, rig, camera, board, T_w_b, s)
+            places.append((badness, s, T_w_b))
+            if badness == (0, 0):  # the first good place
+                break
+        if places and places[-1][0] == (0, 0):
+            break
+    if not places:
+        raise ValueError(f"rig {rigs.host.name!r}: no place for the board inside the hall")
+    _, s, T_true = min(places, key=lambda p: p[0])
     surveyed = T_true @ make_T(rotvec_to_R(w), t)
-    return BoardSetup(PlacedBoard(BOARD.make(), T_true), surveyed, s)
+    return BoardSetup(PlacedBoard(board.make(), T_true), surveyed, s, board)
+
+
+def board_for_lens(rigs: DemoRigs) -> tuple[BoardSpec, float]:
+    """The board as printed for this lens, and how far below the track it stands.
+
+    The default board at the distance where its longer side fills `BOARD_FILL` of the image's
+    shorter side; where the floor (a long lens on a low track) or the stations' slant (a wide
+    lens) does not allow that distance, a print scaled to fill the same at the one allowed.
+    """
+    cam = rigs.host.camera
+    focal = min(cam.intrinsics.get("fx"), cam.intrinsics.get("fy"))
+    longer = max(BOARD.squares_x, BOARD.squares_y) * BOARD.square_mm
+    wanted = focal * longer / (BOARD_FILL * min(cam.width, cam.height))
+    height = float(rigs.host_kinematics().track.pose(rigs.start_s_mm())[2, 3])
+    below = min(max(wanted, BOARD_MIN_BELOW_MM), height - BOARD_MIN_Z_MM)
+    if abs(below - wanted) < 1.0:
+        return BOARD, wanted
+    k = below / wanted
+    square, marker = round(BOARD.square_mm * k, 1), round(BOARD.marker_mm * k, 1)
+    return BoardSpec(BOARD.squares_x, BOARD.squares_y, square, marker, BOARD.dictionary), below
+
+
+def inside_hall(spec: RigSpec, point_w: FloatArray) -> bool:
+    """On the inner side of every surveyed wall (their normals point into the hall)."""
+    for surface in spec.hall.surfaces:
+        if surface.radius_mm > 0.0:
+            continue  # a bounded target, not a wall
+        n = np.asarray(surface.normal, dtype=np.float64)
+        depth = float((point_w - np.asarray(surface.point_mm)) @ (n / np.linalg.norm(n)))
+        if abs(n[2]) < 0.5 and depth < BOARD_HALL_CLEARANCE_MM:
+            return False
+    return True
+
+
+def board_view_conflicts(
+    rigs: DemoRigs, rig: Rig, camera: CameraModel, board: BoardSpec, T_w_b: FloatArray,
+    s_mm: float,
+) -> tuple[int, int]:  # fmt: skip
+    """Over the board views of the commissioning plan for a board at T_w_b above s_mm: (views in
+    which the drawing's workpiece edges cross more than `BOARD_MAX_CROSSED` of the markers in
+    view, views that cannot be planned). The simulated camera, like a real one behind a thin
+    wire frame, draws the edges over the board, and a marker an edge crosses does not decode."""
+    intrinsics, check = board_stations(rigs, s_mm)
+    where = [*intrinsics, *check]
+    centre = (T_w_b @ np.append(board.centre_mm, 1.0))[:3]
+    head = rigs.host.head
+    limits = ((head.pan_min_rad, head.pan_max_rad), (head.tilt_min_rad, head.tilt_max_rad))
+    views = board_plan(rig, camera, centre, where, IMAGE_TARGETS, limits)
+    markers_b = np.asarray(board.make().getObjPoints(), dtype=np.float64).reshape(-1, 3)
+    markers_w = transform_points(T_w_b, markers_b)
+    model = model_of(rigs.host)
+    model_w = transform_points(rigs.host_workpiece(), model.vertices)
+    size = np.array([camera.width, camera.height], dtype=np.float64)
+    spoilt = 0
+    for v in views:
+        T_c_w = rig.T_c_w(v.s_mm, v.pan_rad, v.tilt_rad)
+        quads, q_ok = _pinhole(camera, T_c_w, markers_w)
+        quads, q_ok = quads.reshape(-1, 4, 2), q_ok.reshape(-1, 4)
+        seen = q_ok.all(axis=1) & ((quads >= 0) & (quads <= size)).all(axis=(1, 2))
+        ends, e_ok = _pinhole(camera, T_c_w, model_w)
+        lines = ends[model.edges][e_ok[model.edges].all(axis=1)]
+        crossed = _segments_cross(lines, quads[seen])
+        spoilt += int(seen.sum()) > 0 and crossed.sum() > BOARD_MAX_CROSSED * seen.sum()
+    return int(spoilt), len(where) * len(IMAGE_TARGETS) - len(views)
+
+
+def _pinhole(
+    camera: CameraModel, T_c_w: FloatArray, points_w: FloatArray
+) -> tuple[FloatArray, Any]:
+    """Pixels through K only (distortion folds far points back into the image), and whether
+    each point is in front of the camera."""
+    pc = transform_points(T_c_w, points_w)
+    front = pc[:, 2] > 1.0
+    uv = (pc @ camera.K.T)[:, :2] / np.where(front, pc[:, 2], 1.0)[:, None]
+    return uv, front
+
+
+def _segments_cross(lines: FloatArray, quads: FloatArray) -> Any:
+    """Per convex quad (K, 4, 2): whether any segment (N, 2, 2) passes through it (Cyrus-Beck)."""
+    if len(lines) == 0 or len(quads) == 0:
+        return np.zeros(len(quads), dtype=bool)
+    edge = np.roll(quads, -1, axis=1) - quads  # (K, 4, 2)
+    area = np.sum(quads[:, :, 0] * np.roll(quads[:, :, 1], -1, axis=1), axis=1) - np.sum(
+        quads[:, :, 1] * np.roll(quads[:, :, 0], -1, axis=1), axis=1
+    )
+    inward = np.stack([-edge[..., 1], edge[..., 0]], axis=-1) * np.sign(area)[:, None, None]
+    a, d = lines[:, 0], lines[:, 1] - lines[:, 0]  # (N, 2)
+    # n·(a + t d - p) >= 0 on every side: num + t den >= 0
+    num = np.einsum("kjc,nc->nkj", inward, a) - np.einsum("kjc,kjc->kj", inward, quads)[None]
+    den = np.einsum("kjc,nc->nkj", inward, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -num / den
+    enter = np.where(den > 0, t, -np.inf).max(axis=2).clip(0.0, None)
+    leave = np.where(den < 0, t, np.inf).min(axis=2).clip(None, 1.0)
+    parallel_out = ((den == 0) & (num < 0)).any(axis=2)
+    return ((enter <= leave) & ~parallel_out).any(axis=0)
+
+
+def board_stations(rigs: DemoRigs, s_mm: float) -> tuple[list[float], list[float]]:
+    """The intrinsics and head stations around the board's, and the acceptance test's."""
+    intrinsics = within_travel(rigs, [s_mm - STATION_SPACING_MM, s_mm, s_mm + STATION_SPACING_MM])
+    return intrinsics, within_travel(rigs, [s_mm - CHECK_OFFSET_MM, s_mm + CHECK_OFFSET_MM])
+
+
+def within_travel(rigs: DemoRigs, values: list[float]) -> list[float]:
+    """Arc lengths kept 200 mm inside the travel."""
+    lo, hi = rigs.travel_mm()
+    return [min(max(v, lo + 200.0), hi - 200.0) for v in values]
 
 
 def feature_points(spec: RigSpec) -> FloatArray:
@@ -150,20 +299,14 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
     stations around where it is watched; the latency from passes past the board; last the
     acceptance test from two stations not used to calibrate.
     """
-    lo, hi = rigs.travel_mm()
-
-    def within(values: list[float]) -> list[float]:
-        return [min(max(v, lo + 200.0), hi - 200.0) for v in values]
-
     s = setup.s_mm
-    stations = within([s - STATION_SPACING_MM, s, s + STATION_SPACING_MM])
-    check = within([s - CHECK_OFFSET_MM, s + CHECK_OFFSET_MM])
+    stations, check = board_stations(rigs, s)
     start = rigs.start_s_mm()
     behind_home = rigs.home_switch_mm() + HOME_CLEARANCE_MM  # the controller stops short of it
-    survey_at = within([max(start + d, behind_home) for d in WORKPIECE_STATIONS_MM])
-    board = BOARD.to_dict()
+    survey_at = within_travel(rigs, [max(start + d, behind_home) for d in WORKPIECE_STATIONS_MM])
+    board = setup.board.to_dict()
     pose = setup.T_w_b_surveyed.tolist()
-    centre = (setup.T_w_b_surveyed @ np.append(BOARD.centre_mm, 1.0))[:3].tolist()
+    centre = (setup.T_w_b_surveyed @ np.append(setup.board.centre_mm, 1.0))[:3].tolist()
     sigma = {"board_sigma_mm": BOARD_SURVEY_SIGMA_MM, "board_sigma_rad": BOARD_SURVEY_SIGMA_RAD}
     nominal = rigs.host
     plan = (

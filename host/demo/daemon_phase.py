@@ -81,15 +81,28 @@ async def running_daemon(
 
 
 async def _wait_for(socket_path: Path, task: asyncio.Task[int]) -> None:
-    """Until the control socket exists; the daemon's own error if it stopped first."""
+    """Until the control socket answers; the daemon's own error if it stopped first. (A socket
+    file left by an earlier run in the same --out directory exists but refuses.)"""
     loop = asyncio.get_running_loop()
     deadline = loop.time() + START_TIMEOUT_S
-    while not socket_path.exists():
+    while not await _answers(socket_path):
         if task.done():
             raise RuntimeError(f"the daemon stopped at start (exit {task.result()})")
         if loop.time() > deadline:
             raise TimeoutError(f"the daemon did not open {socket_path}")
         await asyncio.sleep(0.02)
+
+
+async def _answers(socket_path: Path) -> bool:
+    """Whether something accepts connections on the socket."""
+    try:
+        _, writer = await asyncio.open_unix_connection(str(socket_path))
+    except OSError:
+        return False
+    writer.close()
+    with contextlib.suppress(OSError):
+        await writer.wait_closed()
+    return True
 
 
 def _link_table(world: SimWorld) -> str:

@@ -1,0 +1,61 @@
+"""View plans within a head's limits: the other way round, and the pan taken modulo 2π."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from host.commissioning.plan import IMAGE_TARGETS, board_plan, other_way
+from host.geometry.camera import CameraModel
+from host.geometry.head import Rig
+from host.geometry.transforms import transform_points
+
+BOARD_W = np.array([-300.0, -1100.0, 1500.0])  # under the paper runway's first straight
+STATIONS = [700.0, 1700.0, 2700.0]
+
+
+def _centre_pixel(rig: Rig, camera: CameraModel, s: float, pan: float, tilt: float) -> np.ndarray:
+    uv, ok = camera.project(transform_points(rig.T_c_w(s, pan, tilt), BOARD_W))
+    assert bool(ok)
+    return np.asarray(uv)
+
+
+def test_a_head_that_tilts_one_way_only_is_aimed_the_other_way_round() -> None:
+    rig, camera = Rig(), CameraModel()
+    free = board_plan(rig, camera, BOARD_W, STATIONS)
+    assert len(free) == len(STATIONS) * len(IMAGE_TARGETS)
+    # The free plan tilts both ways; a head whose tilt stops at 0 on one side still gets every
+    # view, by pan + π with the tilt mirrored.
+    sides = {math.copysign(1.0, v.tilt_rad) for v in free}
+    assert sides == {-1.0, 1.0}
+    for side in (1.0, -1.0):
+        tilt = (0.0, math.pi / 2) if side > 0 else (-math.pi / 2, 0.0)
+        limits = ((-math.pi, math.pi), tilt)
+        plan = board_plan(rig, camera, BOARD_W, STATIONS, limits=limits)
+        assert len(plan) == len(free)
+        size = np.array([camera.width - 1.0, camera.height - 1.0])
+        for view, (fx, fy) in zip(plan, IMAGE_TARGETS * len(STATIONS), strict=True):
+            assert tilt[0] <= view.tilt_rad <= tilt[1]
+            uv = _centre_pixel(rig, camera, view.s_mm, view.pan_rad, view.tilt_rad)
+            assert np.hypot(*(uv - size * np.array([fx, fy]))) < 5.0
+
+
+def test_a_pan_is_taken_into_limits_that_do_not_straddle_zero() -> None:
+    rig, camera = Rig(), CameraModel()
+    assert any(v.pan_rad < 0.0 for v in board_plan(rig, camera, BOARD_W, STATIONS))
+    limits = ((0.0, 2 * math.pi), (-math.pi / 2, math.pi / 2))
+    plan = board_plan(rig, camera, BOARD_W, STATIONS, limits=limits)
+    assert len(plan) == len(STATIONS) * len(IMAGE_TARGETS)
+    assert all(0.0 <= v.pan_rad <= 2 * math.pi for v in plan)
+
+
+def test_the_other_way_points_the_camera_along_the_same_axis() -> None:
+    rig = Rig()
+    s, pan, tilt = 1700.0, 0.4, -0.6
+    axis = rig.T_w_c(s, pan, tilt)[:3, 2]
+    pan2, tilt2 = other_way(rig, (pan, tilt))
+    axis2 = rig.T_w_c(s, pan2, tilt2)[:3, 2]
+    # M_cr turns the camera ~8° about its axis and tilts it a little: the second branch is a
+    # start for Newton's method, within a few degrees of the same direction
+    assert math.degrees(math.acos(float(np.clip(axis @ axis2, -1.0, 1.0)))) < 3.0
