@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from statistics import NormalDist
+from typing import Any
 
 import cv2
 import numpy as np
@@ -117,6 +118,8 @@ class SyntheticCamera:
     blur_samples: int = BLUR_SAMPLES
     _rng: np.random.Generator = field(init=False, repr=False)
     _rays: npt.NDArray[np.float32] | None = field(default=None, init=False, repr=False)
+    # the last noiseless scene: (what it showed, its image), reused while nothing moved
+    _still: tuple[tuple[Any, ...], UInt8Image] | None = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         self._rng = np.random.default_rng(self.seed)
@@ -133,6 +136,26 @@ class SyntheticCamera:
         """Grey background (and a board in the hall), model edges (frame p), textured points,
         photogrammetry targets (frame p)."""
         T_c_p = invert_T(T_w_c) @ T_w_p
+        pts = np.zeros((0, 3)) if textured_points_p is None else textured_points_p
+        pts_uv, _ = self.camera.project(transform_points(T_c_p, pts))
+        verts_uv, _ = self.camera.project(transform_points(T_c_p, model.vertices))
+        # A rig at rest shows the same scene frame after frame: only the noise is new. (Not
+        # with textured points: their colours are drawn from the noise's generator.)
+        shown = (model, board, _key(targets_p), _key(T_w_c), _key(T_w_p))
+        if textured_points_p is None and self._still is not None and _same(self._still[0], shown):
+            img = self._still[1]
+        else:
+            img = self._draw_scene(T_w_c, T_c_p, model, pts_uv, board, targets_p)
+            self._still = (shown, img) if textured_points_p is None else None
+        noisy = self._noisy(img)
+        noisy = noisy.copy() if noisy is img else noisy  # the kept image stays untouched
+        return SceneFrame(noisy, np.array(T_w_c, dtype=np.float64), verts_uv, pts_uv)
+
+    def _draw_scene(
+        self, T_w_c: FloatArray, T_c_p: FloatArray, model: Wireframe, pts_uv: FloatArray,
+        board: PlacedBoard | None, targets_p: FloatArray | None,
+    ) -> UInt8Image:  # fmt: skip
+        """The scene without noise."""
         if board is None:
             img = np.empty((self.camera.height, self.camera.width, 3), dtype=np.uint8)
             img[:] = BACKGROUND_BGR
@@ -140,14 +163,11 @@ class SyntheticCamera:
             grey = self._cast_charuco(invert_T(T_w_c) @ board.T_w_b, board.board)
             img = np.asarray(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
         self._draw_edges(img, T_c_p, model)
-        pts = np.zeros((0, 3)) if textured_points_p is None else textured_points_p
-        pts_uv, _ = self.camera.project(transform_points(T_c_p, pts))
         self._draw_points(img, pts_uv)
         if targets_p is not None:
             targets_uv, _ = self.camera.project(transform_points(T_c_p, targets_p))
             self._draw_targets(img, targets_uv)
-        verts_uv, _ = self.camera.project(transform_points(T_c_p, model.vertices))
-        return SceneFrame(self._noisy(img), np.array(T_w_c, dtype=np.float64), verts_uv, pts_uv)
+        return img
 
     def render_chessboard(
         self, T_c_b: FloatArray, pattern: tuple[int, int], square_mm: float
@@ -325,3 +345,24 @@ def _noise_table(sigma_dn: float) -> npt.NDArray[np.int16]:
         z = np.array([inv((k + 0.5) / 65536) for k in range(65536)])
         _NOISE_TABLES[sigma_dn] = np.floor(sigma_dn * z).astype(np.int16)
     return _NOISE_TABLES[sigma_dn]
+
+
+STILL_TOL = 1e-6  # mm and rad: a pose this near the last one renders the same image
+
+
+def _key(a: FloatArray | None) -> FloatArray | None:
+    """A pose or point set as compared for `_same` (a copy: callers may reuse their arrays)."""
+    return None if a is None else np.array(a, dtype=np.float64)
+
+
+def _same(a: tuple[Any, ...], b: tuple[Any, ...]) -> bool:
+    """The same model, board and targets, and poses within STILL_TOL."""
+    for x, y in zip(a, b, strict=True):
+        if isinstance(x, np.ndarray) or isinstance(y, np.ndarray):
+            if x is None or y is None or x.shape != y.shape:
+                return False
+            if not np.allclose(x, y, rtol=0.0, atol=STILL_TOL):
+                return False
+        elif x is not y:
+            return False
+    return True
