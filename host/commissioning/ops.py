@@ -33,7 +33,7 @@ from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import Filmed, JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
-from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
+from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan, sweep
 from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
 from host.geometry.camera import CameraModel
@@ -176,7 +176,8 @@ def _start_capture_run(
             views = [dataclasses.replace(v) for v in filmed.views]  # a solve may mark outliers
             progress["planned"] = len(views)
         else:
-            plan = board_plan(rig, camera, centre, where, IMAGE_TARGETS, head_limits)
+            order = sweep(where, _trolley_s(controller, env))
+            plan = board_plan(rig, camera, centre, order, IMAGE_TARGETS, head_limits)
             progress["planned"] = len(plan)
             if not plan:
                 raise AbortedError("no view of the board can be planned from these stations")
@@ -184,7 +185,7 @@ def _start_capture_run(
             views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
             env.jobs.filmed = Filmed(
                 _job_id(env), kind, spec.to_dict(), tuple(float(c) for c in centre),
-                tuple(where), io.home_s_mm, tuple(views),
+                tuple(sorted(where)), io.home_s_mm, tuple(views),
             )  # fmt: skip
         progress["phase"] = "solving"
         summary, page, updates = await asyncio.to_thread(finish, views, rig, camera)
@@ -202,11 +203,17 @@ def _reusable(
     if filmed is None or filmed.board != spec.to_dict():
         return None
     same_stations = len(filmed.stations_mm) == len(where) and all(
-        abs(a - b) <= REUSE_TOL_MM for a, b in zip(filmed.stations_mm, where, strict=True)
+        abs(a - b) <= REUSE_TOL_MM for a, b in zip(filmed.stations_mm, sorted(where), strict=True)
     )
     near = float(np.linalg.norm(np.subtract(filmed.centre_mm, centre))) <= REUSE_CENTRE_MM
     same_zero = abs(filmed.home_s_mm - env.home_s_mm()) <= REUSE_TOL_MM
     return filmed if same_stations and near and same_zero else None
+
+
+def _trolley_s(controller: Any, env: CommissioningEnv) -> float | None:
+    """The trolley's arc length now (None if the controller does not know it)."""
+    pos = controller.snapshot().get("position_mm")
+    return None if pos is None else float(pos) + env.home_s_mm()
 
 
 def _job_id(env: CommissioningEnv) -> int:
@@ -376,7 +383,8 @@ def _survey_workpiece_camera(
         spec = env.spec()
         rough = spec.workpiece.frame.matrix  # the drawing's: only to predict where to look
         points_w = transform_points(rough, model_p)
-        views = targets_run.plan_views(rig, camera, points_w, where, head_limits)
+        order = sweep(where, _trolley_s(controller, env))
+        views = targets_run.plan_views(rig, camera, points_w, order, head_limits)
         progress["planned"] = len(views)
         if not views:
             raise AbortedError("no view of the targets can be planned from these stations")
