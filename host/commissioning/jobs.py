@@ -60,12 +60,27 @@ class Job:
         return out
 
 
+@dataclass(frozen=True)
+class Filmed:
+    """The views a board run filmed, kept for a later run that may reuse them (the head
+    calibration solves from the intrinsics run's views instead of filming the same plan)."""
+
+    job: int
+    kind: str
+    board: dict[str, Any]  # the BoardSpec as given
+    centre_mm: tuple[float, ...]  # the board centre the plan aimed at (world)
+    stations_mm: tuple[float, ...]
+    home_s_mm: float  # the zero the views' arc lengths were taken with
+    views: tuple[Any, ...]  # host.commissioning.intrinsics_run.CapturedView
+
+
 class JobBoard:
-    """The daemon's commissioning runs (at most one running)."""
+    """The daemon's commissioning runs (at most one running), and the last board filming."""
 
     def __init__(self) -> None:
         self._ids = itertools.count(1)
         self.current: Job | None = None
+        self.filmed: Filmed | None = None
 
     def start(self, kind: str, run: RunFn) -> Job:
         """Start a run; JobBusyError while another one is running."""

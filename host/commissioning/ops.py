@@ -10,6 +10,7 @@ host.control.ops.OPS.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -30,9 +31,9 @@ from host.commissioning import (
 )
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
-from host.commissioning.jobs import JobBusyError, Progress
+from host.commissioning.jobs import Filmed, JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
-from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan
+from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan, sweep
 from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
 from host.geometry.camera import CameraModel
@@ -43,6 +44,9 @@ from host.rig import update_rig
 MAX_STATIONS = 64
 MAX_POSES = 512
 MAX_ABS_MM = 1e6
+# views reused by a later run: same stations and zero to this, the board's centre to this
+REUSE_TOL_MM = 1e-3
+REUSE_CENTRE_MM = 100.0
 
 
 def env_of(ctx: OpContext) -> CommissioningEnv:
@@ -144,7 +148,12 @@ def _start_capture_run(
     ctx: OpContext, args: Mapping[str, Any], kind: str, centre: FloatArray,
     finish: Any,
 ) -> dict[str, Any]:  # fmt: skip
-    """Start a run that captures board views along a plan, then calls `finish` on them."""
+    """Start a run that captures board views along a plan, then calls `finish` on them.
+
+    With `reuse_views`, the views the last board run filmed are solved again instead, when that
+    run filmed the same board around the same centre from the same stations with the same zero
+    (the head calibration from the intrinsics run's views: one filming for both solves).
+    """
     env = env_of(ctx)
     spec = board_spec(args)
     where = stations(args, ctx)
@@ -153,22 +162,64 @@ def _start_capture_run(
         raise OpError(
             "bad_args", f"speed_mm_s = {args.get('speed_mm_s')!r}: expected 1-{MAX_SPEED_MM_S}"
         )
+    reuse = args.get("reuse_views", False)
+    if not isinstance(reuse, bool):
+        raise OpError("bad_args", f"reuse_views = {reuse!r}: expected true or false")
     controller = _filming(ctx, env)
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
     async def run(progress: Progress) -> dict[str, Any]:
         tap, rig, camera = _camera_now(env)
-        plan = board_plan(rig, camera, centre, where, IMAGE_TARGETS, head_limits)
-        progress["planned"] = len(plan)
-        if not plan:
-            raise AbortedError("no view of the board can be planned from these stations")
-        io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
-        views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
+        filmed = _reusable(env, spec, centre, where) if reuse else None
+        if filmed is not None:
+            progress.update(phase=f"solving the views of {filmed.kind} run {filmed.job}")
+            views = [dataclasses.replace(v) for v in filmed.views]  # a solve may mark outliers
+            progress["planned"] = len(views)
+        else:
+            order = sweep(where, _trolley_s(controller, env))
+            plan = board_plan(rig, camera, centre, order, IMAGE_TARGETS, head_limits)
+            progress["planned"] = len(plan)
+            if not plan:
+                raise AbortedError("no view of the board can be planned from these stations")
+            io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
+            views = await intrinsics_run.capture(io, plan, BoardDetector(spec), camera, progress)
+            env.jobs.filmed = Filmed(
+                _job_id(env), kind, spec.to_dict(), tuple(float(c) for c in centre),
+                tuple(sorted(where)), io.home_s_mm, tuple(views),
+            )  # fmt: skip
         progress["phase"] = "solving"
         summary, page, updates = await asyncio.to_thread(finish, views, rig, camera)
+        summary["views_from"] = "filmed" if filmed is None else f"{filmed.kind} run {filmed.job}"
         return await _conclude(env, args, progress, kind, summary, page, updates)
 
     return _start(env, kind, run)
+
+
+def _reusable(
+    env: CommissioningEnv, spec: BoardSpec, centre: FloatArray, where: list[float]
+) -> Filmed | None:
+    """The last board filming, if it saw this board from these stations with today's zero."""
+    filmed = env.jobs.filmed
+    if filmed is None or filmed.board != spec.to_dict():
+        return None
+    same_stations = len(filmed.stations_mm) == len(where) and all(
+        abs(a - b) <= REUSE_TOL_MM for a, b in zip(filmed.stations_mm, sorted(where), strict=True)
+    )
+    near = float(np.linalg.norm(np.subtract(filmed.centre_mm, centre))) <= REUSE_CENTRE_MM
+    same_zero = abs(filmed.home_s_mm - env.home_s_mm()) <= REUSE_TOL_MM
+    return filmed if same_stations and near and same_zero else None
+
+
+def _trolley_s(controller: Any, env: CommissioningEnv) -> float | None:
+    """The trolley's arc length now (None if the controller does not know it)."""
+    pos = controller.snapshot().get("position_mm")
+    return None if pos is None else float(pos) + env.home_s_mm()
+
+
+def _job_id(env: CommissioningEnv) -> int:
+    """The id of the run in progress (the caller's own)."""
+    job = env.jobs.current
+    return -1 if job is None else job.id
 
 
 async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -332,7 +383,8 @@ def _survey_workpiece_camera(
         spec = env.spec()
         rough = spec.workpiece.frame.matrix  # the drawing's: only to predict where to look
         points_w = transform_points(rough, model_p)
-        views = targets_run.plan_views(rig, camera, points_w, where, head_limits)
+        order = sweep(where, _trolley_s(controller, env))
+        views = targets_run.plan_views(rig, camera, points_w, order, head_limits)
         progress["planned"] = len(views)
         if not views:
             raise AbortedError("no view of the targets can be planned from these stations")

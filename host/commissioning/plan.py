@@ -140,6 +140,15 @@ def wrap_pan(
     return angles
 
 
+def sweep(stations_mm: Sequence[float], s_now_mm: float | None) -> list[float]:
+    """The stations in one sweep along the track from the end nearer the trolley (the order
+    does not change what a fit sees, only how far the trolley runs)."""
+    ordered = sorted(stations_mm)
+    if s_now_mm is not None and abs(ordered[-1] - s_now_mm) < abs(ordered[0] - s_now_mm):
+        ordered.reverse()
+    return ordered
+
+
 def within_limits(
     angles: tuple[float, float], limits: tuple[tuple[float, float], tuple[float, float]] | None
 ) -> bool:

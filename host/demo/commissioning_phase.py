@@ -313,7 +313,10 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
         CommissioningPlan()
         .add("survey_home", **first_home_survey(nominal))
         .intrinsics(centre, stations, board=board)
-        .add("calibrate_head", board_pose=pose, board=board, stations_mm=stations, **sigma)
+        .add(
+            "calibrate_head", board_pose=pose, board=board, stations_mm=stations, reuse_views=True,
+            **sigma,
+        )  # the intrinsics run's views: the same board, stations and zero
     )  # fmt: skip
     points = feature_points(nominal)
     if len(points) >= MIN_TARGETS:

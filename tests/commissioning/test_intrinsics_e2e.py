@@ -11,6 +11,7 @@ import pytest
 
 from host.cli import main as cli_main
 from host.commissioning.client import CommissioningPlan, commission
+from host.control.client import ControlRequestError
 from host.geometry.head import Rig
 from host.geometry.transforms import R_to_rotvec, euler_zyx, make_T
 from host.rig import load_rig
@@ -153,6 +154,45 @@ async def test_commissioning_sequence_recovers_the_chain_within_three_sigma(
     check = results["calibrate_check"]
     # without cross-covariances in the rig file the budget is an upper bound (COMMISSIONING.md)
     assert check["predicted_sigma_px"] >= check["rms_px"]
+
+
+@pytest.mark.slow
+async def test_head_solves_the_intrinsics_views_and_moves_nothing(tmp_path: Path) -> None:
+    """`reuse_views`: the head solves the intrinsics run's views (same board, stations, zero):
+    no motion, and M_cr and the track placement still within 3σ (about 25 s)."""
+    stations = [700.0, 1700.0, 2700.0]
+    async with sim_daemon(tmp_path, seed=8) as h:
+        await h.request("home")
+        rng = np.random.default_rng(0)
+        surveyed = h.loop.board.T_w_b @ make_T(
+            euler_zyx(*rng.normal(0, 1e-3, 3)), rng.normal(0, 1.0, 3)
+        )
+        pose = {"board_pose": surveyed.tolist(), "board": BOARD.to_dict(), "stations_mm": stations}
+        plan = CommissioningPlan().intrinsics(**args(stations_mm=stations, speed_mm_s=1500.0))  # type: ignore[arg-type]
+        [(_, lens)] = await commission(h.client, plan)
+        before = (await h.request("status"))["controller"]
+        head_plan = CommissioningPlan().add("calibrate_head", reuse_views=True, **pose)
+        [(_, head)] = await commission(h.client, head_plan)
+        after = (await h.request("status"))["controller"]
+        # another station list: nothing to reuse, so it films
+        other = CommissioningPlan().add(
+            "calibrate_head", reuse_views=True, **{**pose, "stations_mm": stations[1:]}
+        )
+        [(_, filmed)] = await commission(h.client, other)
+        with pytest.raises(ControlRequestError, match="reuse_views"):
+            await h.request("calibrate_head", reuse_views="yes", **pose)
+    assert lens["passed"], lens["reasons"]
+    assert head["passed"], head["reasons"]
+    assert head["views_from"] == "intrinsics run 1"
+    assert head["views"]["ok"] == lens["views"]["ok"]
+    assert (after["position_mm"], after["head_rad"]) == (before["position_mm"], before["head_rad"])
+    err = local_error(np.array(head["m_cr"]), h.rig.T_r_c)
+    sig = np.sqrt(np.diag(np.array(head["m_cr_covariance"])))
+    assert np.all(np.abs(err) < 3 * sig), (err, sig)
+    err_k = local_error(np.array(head["T_w_track"]), h.rig.track.T_w_track)
+    sig_k = np.sqrt(np.diag(np.array(head["T_w_track_covariance"])))
+    assert np.all(np.abs(err_k) < 3 * sig_k), (err_k, sig_k)
+    assert filmed["views_from"] == "filmed"
 
 
 async def test_latency_from_passes_finds_the_delivery_delay(tmp_path: Path) -> None:
