@@ -6,9 +6,7 @@ unpacks Transmit Requests (0x10), refuses RF data over 84 bytes, sends the rest 
 the device endpoint, and answers each request with a Transmit Status (0x8B) giving the retries
 and the outcome. Bytes from the device are packetised at 0x00 frame delimiters, as the
 controller's firmware hands whole frames to its module, and arrive at the host as Receive
-Packets (0x90) from the controller module's 64-bit address. Both modules store and forward:
-a packet goes on the air once its last byte came in over the UART (the host's at `uart_baud`,
-the controller's at `device_baud`), and leaves the far module's UART after it has landed.
+Packets (0x90) from the controller module's 64-bit address.
 
 Timing, against Digi's figures for XBee ZB (0x10/0x90 frames, 84-byte unicast payload):
 - Digi's XBee/XBee-PRO ZB RF Modules user guide, "Throughput": 1 hop, router to router,
@@ -22,7 +20,11 @@ A packet here occupies the shared channel for (B + AIR_OVERHEAD_BYTES) · 8 / AI
 with the rate chosen so that a full packet takes Digi's measured 19.2 ms. (It used to be the
 35 kbit/s figure itself with the overhead added on top: 23.3 ms a full packet, 18 % slower than
 measured.) How the cost splits between a fixed part and a per-byte part for short packets is
-not in any figure: this model's split (3.4 ms + 0.19 ms a byte) is an assumption.
+not in any figure: this model's split (3.4 ms + 0.19 ms a byte) is an assumption. Optimistic
+on the other side: the controller's UART to its module is not paced (its frames reach the
+module at once; at 115200 Bd a 60-byte batch would take 5.2 ms more). Pacing it was tried and
+left out: behind the demo's one-process loop, stalls then burst whole seconds of frames into a
+bounded UART buffer (or, unbounded, queue them), and the link died of heartbeat silence.
 
 The air is one half-duplex channel: both modules' packets take turns on it, so what one
 direction sends is air time the other cannot use. Each module holds the data waiting for the air
@@ -59,7 +61,6 @@ AIR_RATE_BPS = 42_500
 AIR_LATENCY_S = 0.002
 MAC_RETRIES = 3
 SERIAL_BUFFER_BYTES = 202  # the module's serial receive ("DI") buffer, XBee 802.15.4
-DEVICE_UART_FIFO_BYTES = 256  # the controller's UART TX buffer (hil_sim.board.TX_RING_BYTES)
 
 
 @dataclass
@@ -76,7 +77,7 @@ class ModuleCounters:
     rx_packets: int = 0
     up_lost: int = 0
     down_overflow: int = 0  # Transmit Requests lost in the host's module: its buffer was full
-    up_overflow: int = 0  # frames lost on the controller side: its module or UART buffer was full
+    up_overflow: int = 0  # frames lost in the controller's module: its buffer was full
 
 
 class SerialBuffer:
@@ -140,9 +141,7 @@ class XBeeModule:
         air_faults: FaultConfig | None = None,
         link_path: str | None = None,
         latency_s: float = AIR_LATENCY_S,
-        device_baud: int | None = None,
     ) -> None:
-        """`device_baud`: the controller's UART to its module (default: `uart_baud`)."""
         if api_mode not in (1, 2):
             raise ValueError(f"api_mode must be 1 or 2, got {api_mode}")
         self.endpoint = endpoint
@@ -165,13 +164,7 @@ class XBeeModule:
         self._uart_out: PacedPipe[bytes] = PacedPipe(self.port.write, uart_rate_bytes_s(uart_baud))
         self._air_down: PacedPipe[_AirPacket] = PacedPipe(self._arrive_device, air_rate, air)
         self._air_up: PacedPipe[bytes] = PacedPipe(self._arrive_host, air_rate, air)
-        device_rate = self._device_rate = uart_rate_bytes_s(device_baud or uart_baud)
-        self._device_in: PacedPipe[bytes] = PacedPipe(self._packetise, device_rate)
-        self._device_out: PacedPipe[bytes] = PacedPipe(self._to_device, device_rate)
-        self._pipes = (
-            self._uart_in, self._uart_out, self._air_down, self._air_up,
-            self._device_in, self._device_out,
-        )  # fmt: skip
+        self._pipes = (self._uart_in, self._uart_out, self._air_down, self._air_up)
 
     @property
     def path(self) -> str:
@@ -263,12 +256,8 @@ class XBeeModule:
             self._status(packet.frame_id, MAC_RETRIES, DeliveryStatus.MAC_ACK_FAILURE)
             return
         self.counters.delivered += 1
-        self._device_out.push(packet.data, len(packet.data))
+        self.endpoint.write(packet.data)
         self._status(packet.frame_id, packet.retries, DeliveryStatus.SUCCESS)
-
-    def _to_device(self, data: bytes) -> None:
-        """RF data out of the controller's module UART, into the firmware."""
-        self.endpoint.write(data)
 
     def _status(self, frame_id: int, retries: int, delivery: int) -> None:
         """Transmit Status to the host, unless it asked for none (frame id 0)."""
@@ -278,33 +267,21 @@ class XBeeModule:
     # ---- device → host ---------------------------------------------------------------------
 
     def _from_device(self, data: bytes) -> None:
-        """The firmware's frames cross its UART into the module, one after the other.
-
-        What would overrun the controller's UART TX buffer is lost there (counted with the
-        module's overflows): a firmware writing faster than its UART must drop, not queue.
-        """
+        """The controller's module packetises whole frames from its UART."""
         for frame in self._splitter.feed(data):
-            queued_s = max(0.0, self._device_in.line.free_s - time.monotonic())
-            if queued_s * self._device_rate + len(frame) > DEVICE_UART_FIFO_BYTES:
+            if not self.up_buffer.admit(len(frame)):
                 self.counters.up_overflow += 1
                 continue
-            self._device_in.push(frame, len(frame))
-
-    def _packetise(self, frame: bytes) -> None:
-        """A whole frame is in the controller's module: one RF packet, if the buffer has room."""
-        if not self.up_buffer.admit(len(frame)):
-            self.counters.up_overflow += 1
-            return
-        attempts, out = _attempts(self.air_up, frame)
-        airtime = attempts * (len(frame) + AIR_OVERHEAD_BYTES)
-        self.air_bytes += airtime
-        if out is None:
-            # Every attempt failed: the air was busy all the same, and nothing arrives.
-            self.up_buffer.hold(len(frame), self._air_up.line.occupy(airtime / self._air_rate))
-            self.counters.up_lost += 1
-            return
-        delay_s = self.latency_s + self.air_up.delay_s()
-        self.up_buffer.hold(len(frame), self._air_up.push(out, airtime, delay_s))
+            attempts, out = _attempts(self.air_up, frame)
+            airtime = attempts * (len(frame) + AIR_OVERHEAD_BYTES)
+            self.air_bytes += airtime
+            if out is None:
+                # Every attempt failed: the air was busy all the same, and nothing arrives.
+                self.up_buffer.hold(len(frame), self._air_up.line.occupy(airtime / self._air_rate))
+                self.counters.up_lost += 1
+                continue
+            delay_s = self.latency_s + self.air_up.delay_s()
+            self.up_buffer.hold(len(frame), self._air_up.push(out, airtime, delay_s))
 
     def _arrive_host(self, data: bytes) -> None:
         """Receive Packet from the controller's module onto the host UART."""
