@@ -48,7 +48,7 @@ PRIOR_SPAN_US = 1_000_000  # the slope leans on the nominal rate as if probes sp
 OUTLIER_SIGMAS = 6.0
 OUTLIER_FLOOR_NS = 200_000
 MAX_CONSECUTIVE_OUTLIERS = 8  # then assume a clock step and start over
-LEG_SPAN_S = 120.0  # the probes of this long whose one-way minima set offset and rate
+LEG_SPAN_S = 160.0  # the probes of this long whose one-way minima set offset and rate
 LEG_BLOCK = 32  # probes per block: each block's quickest way out and way back
 MIN_LEG_BLOCKS = 3  # below this the regression's own offset and rate stand
 
@@ -82,6 +82,7 @@ class ClockSync:
         self.outliers = 0
         self.filtered = 0
         self.inconsistent = 0
+        self._probe_count = 0
         self.reset()
 
     def reset(self) -> None:
@@ -129,7 +130,8 @@ class ClockSync:
             return False
         x = self.extend(mcu_ticks_32)
         rx_x = None if rx_ticks_32 is None else x - held
-        probe = _Probe(x, t0_ns, rtt - residence, residence, rx_x, t1_ns)
+        probe = _Probe(x, t0_ns, rtt - residence, residence, rx_x, t1_ns, self._probe_count)
+        self._probe_count += 1
         self._history.append(probe)
         min_delay = min(p.delay for p in self._history)
         if probe.delay - min_delay > self._excess_cutoff(min_delay):
@@ -234,20 +236,23 @@ class ClockSync:
     def _centre_on_leg_minima(self, fit: _Fit) -> _Fit:
         """Re-fit offset and rate to the legs' minima, block by block of recent probes.
 
-        In each block of LEG_BLOCK probes the quickest way out and the quickest way back give
-        how late the mapping is there (slow round trips count: one leg of them may be quick);
-        a line through the blocks' values corrects the mapping's offset and rate.
+        In each block of LEG_BLOCK successive probes the quickest way out and the quickest way
+        back give how late the mapping is there (slow round trips count: one leg of them may be
+        quick); a line through the blocks' values corrects the mapping's offset and rate. Blocks
+        are fixed by probe number and only complete ones count, so the mapping moves when a
+        block completes, not at every probe (the probe rate reads movement as error).
         """
+        open_block = self._probe_count // LEG_BLOCK
         newest = self._history[-1].t0
-        recent = [
-            p
-            for p in itertools.takewhile(
-                lambda p: newest - p.t0 <= LEG_SPAN_S * NS_PER_S, reversed(self._history)
-            )
-            if p.rx_x is not None and not p.outlier
-        ]
-        n_blocks = len(recent) // LEG_BLOCK
-        if n_blocks < MIN_LEG_BLOCKS:
+        blocks: dict[int, list[_Probe]] = {}
+        for p in reversed(self._history):
+            if p.index // LEG_BLOCK == open_block or p.outlier or p.rx_x is None:
+                continue
+            if p.index // LEG_BLOCK not in blocks and newest - p.t0 > LEG_SPAN_S * NS_PER_S:
+                break  # blocks that ended before the span are left out whole
+            blocks.setdefault(p.index // LEG_BLOCK, []).append(p)
+        full = [b for b in blocks.values() if 2 * len(b) >= LEG_BLOCK]
+        if len(full) < MIN_LEG_BLOCKS:
             return fit
 
         def host(x: int) -> float:
@@ -255,14 +260,13 @@ class ClockSync:
 
         f = self.outbound_fraction
         xs, lates = [], []
-        for i in range(n_blocks):
-            block = recent[i * LEG_BLOCK : (i + 1) * LEG_BLOCK]
+        for block in full:
             out_min = min(host(p.rx_x) - p.t0 for p in block if p.rx_x is not None)
             back_min = min(p.t1 - host(p.x) for p in block)
             # Mapped late by e, every way out reads e longer and every way back e shorter.
             lates.append((1.0 - f) * out_min - f * back_min)
-            xs.append(sum(p.x for p in block) / LEG_BLOCK - fit.x0)
-        x_mean, late_mean = sum(xs) / n_blocks, sum(lates) / n_blocks
+            xs.append(sum(p.x for p in block) / len(block) - fit.x0)
+        x_mean, late_mean = sum(xs) / len(xs), sum(lates) / len(lates)
         sxx = sum((x - x_mean) ** 2 for x in xs)
         rate = sum((x - x_mean) * (e - late_mean) for x, e in zip(xs, lates, strict=True)) / sxx
         # host'(x) = host(x) - late_mean - rate · (x - x0 - x_mean), in the fit's own terms.
@@ -293,6 +297,7 @@ class _Probe:
     residence: float  # how long the controller held the probe, ns
     rx_x: int | None  # extended controller ticks when the probe arrived (None: not stamped)
     t1: int  # host receive time, ns
+    index: int  # its number among this estimator's probes (fixes the blocks)
     outlier: bool = False
 
 
