@@ -4,8 +4,8 @@
     python benchmarks/bench_link_transport.py --telemetry  # the same, from the transport bench
 
 The daemon's Controller talks to the firmware mirror and the simulated plant running in real
-time behind the emulated XBee pair (API mode 2, air timed from Digi's figures as
-`hil_sim.links.xbee` cites them, 202-byte module buffers), with the daemon's XBee rates for
+time behind the emulated XBee pair (API mode 2, 35 kbit/s air, checked against Digi's figures
+in `hil_sim.links.xbee`, 202-byte module buffers), with the daemon's XBee rates for
 the mode: single samples (a host that does not offer batching, at `SINGLE_SAMPLE_RATES_HZ`),
 batched (both offer it, at the batched rates and the link's batch ages) and `ages_E_R` (the
 same with other batch ages: the latency/air trade; `--modes`). Each mode waits for the steady
