@@ -12,22 +12,12 @@ out. The fit is recomputed from the kept probes after each one, so a newly found
 delay re-weights the past instead of leaving early, slow probes trusted. Probes that disagree
 with the prediction by far more than their delay can explain are rejected as outliers.
 
-The regression gives the rate; its offset is then re-centred on the two legs' own minima. With
-the arrival stamp each probe measures both legs apart (up to the offset): the way out as the
-mapped arrival minus t0, the way back as t1 minus the mapped departure. A wrong offset makes
-one leg read longer and the other shorter by the same amount, and each leg reaches its minimum
-far more often than both at once (one probe with a quick round trip), so over a radio whose
-packets wait behind others now one way, now the other, the legs' minima pin the offset where
-the fastest round trips still scatter by milliseconds (NTP's clock filter keeps the fastest
-round trips; taking each direction's minimum apart follows Veitch et al.'s RADclock).
-
 No estimator can see a difference between the two legs' *minimum* delays; it shifts the mapping
 by half that difference. When a link's asymmetry is known, `outbound_fraction` corrects it.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import math
 from collections import deque
@@ -48,9 +38,6 @@ PRIOR_SPAN_US = 1_000_000  # the slope leans on the nominal rate as if probes sp
 OUTLIER_SIGMAS = 6.0
 OUTLIER_FLOOR_NS = 200_000
 MAX_CONSECUTIVE_OUTLIERS = 8  # then assume a clock step and start over
-LEG_SPAN_S = 160.0  # the probes of this long whose one-way minima set offset and rate
-LEG_BLOCK = 32  # probes per block: each block's quickest way out and way back
-MIN_LEG_BLOCKS = 3  # below this the regression's own offset and rate stand
 
 
 @dataclass(frozen=True)
@@ -82,7 +69,6 @@ class ClockSync:
         self.outliers = 0
         self.filtered = 0
         self.inconsistent = 0
-        self._probe_count = 0
         self.reset()
 
     def reset(self) -> None:
@@ -128,10 +114,7 @@ class ClockSync:
             # stamp (or, in a simulator, a tick that ran after its own time): nothing to learn.
             self.inconsistent += 1
             return False
-        x = self.extend(mcu_ticks_32)
-        rx_x = None if rx_ticks_32 is None else x - held
-        probe = _Probe(x, t0_ns, rtt - residence, residence, rx_x, t1_ns, self._probe_count)
-        self._probe_count += 1
+        probe = _Probe(self.extend(mcu_ticks_32), t0_ns, rtt - residence, residence)
         self._history.append(probe)
         min_delay = min(p.delay for p in self._history)
         if probe.delay - min_delay > self._excess_cutoff(min_delay):
@@ -140,7 +123,7 @@ class ClockSync:
         if self._is_outlier(probe, min_delay):
             probe.outlier = True
             return False
-        self._fit = self._centre_on_leg_minima(self._solve(min_delay))
+        self._fit = self._solve(min_delay)
         self.probes_used += 1
         return True
 
@@ -233,46 +216,6 @@ class ClockSync:
         y = probe.t0 + self.outbound_fraction * min_delay + excess / 2 + probe.residence
         return y, BASE_SIGMA_NS**2 + (excess / 2) ** 2
 
-    def _centre_on_leg_minima(self, fit: _Fit) -> _Fit:
-        """Re-fit offset and rate to the legs' minima, block by block of recent probes.
-
-        In each block of LEG_BLOCK successive probes the quickest way out and the quickest way
-        back give how late the mapping is there (slow round trips count: one leg of them may be
-        quick); a line through the blocks' values corrects the mapping's offset and rate. Blocks
-        are fixed by probe number and only complete ones count, so the mapping moves when a
-        block completes, not at every probe (the probe rate reads movement as error).
-        """
-        open_block = self._probe_count // LEG_BLOCK
-        newest = self._history[-1].t0
-        blocks: dict[int, list[_Probe]] = {}
-        for p in reversed(self._history):
-            if p.index // LEG_BLOCK == open_block or p.outlier or p.rx_x is None:
-                continue
-            if p.index // LEG_BLOCK not in blocks and newest - p.t0 > LEG_SPAN_S * NS_PER_S:
-                break  # blocks that ended before the span are left out whole
-            blocks.setdefault(p.index // LEG_BLOCK, []).append(p)
-        full = [b for b in blocks.values() if 2 * len(b) >= LEG_BLOCK]
-        if len(full) < MIN_LEG_BLOCKS:
-            return fit
-
-        def host(x: int) -> float:
-            return fit.y0 + fit.my + fit.slope * (x - fit.x0 - fit.mx)
-
-        f = self.outbound_fraction
-        xs, lates = [], []
-        for block in full:
-            out_min = min(host(p.rx_x) - p.t0 for p in block if p.rx_x is not None)
-            back_min = min(p.t1 - host(p.x) for p in block)
-            # Mapped late by e, every way out reads e longer and every way back e shorter.
-            lates.append((1.0 - f) * out_min - f * back_min)
-            xs.append(sum(p.x for p in block) / len(block) - fit.x0)
-        x_mean, late_mean = sum(xs) / len(xs), sum(lates) / len(lates)
-        sxx = sum((x - x_mean) ** 2 for x in xs)
-        rate = sum((x - x_mean) * (e - late_mean) for x, e in zip(xs, lates, strict=True)) / sxx
-        # host'(x) = host(x) - late_mean - rate · (x - x0 - x_mean), in the fit's own terms.
-        my = fit.my - late_mean - rate * (fit.mx - x_mean)
-        return dataclasses.replace(fit, my=my, slope=fit.slope - rate)
-
     def _solve(self, min_delay: float) -> _Fit:
         """Decaying weighted least squares over the kept probes (centred, numerically stable)."""
         newest = max(p.x for p in self._history)
@@ -295,9 +238,6 @@ class _Probe:
     t0: int  # host send time, ns
     delay: float  # round trip minus the controller's residence, ns
     residence: float  # how long the controller held the probe, ns
-    rx_x: int | None  # extended controller ticks when the probe arrived (None: not stamped)
-    t1: int  # host receive time, ns
-    index: int  # its number among this estimator's probes (fixes the blocks)
     outlier: bool = False
 
 
