@@ -26,6 +26,12 @@ figure: this model's split (4.1 ms + 0.23 ms a byte) is an assumption. Optimisti
 side: the controller's UART to its module is not paced (a 60-byte batch would take 5.2 ms at
 115200 Bd). Pacing it was tried and left out: behind the demo's one-process loop, stalls then
 burst seconds of frames into the bounded UART buffer and the link died of heartbeat silence.
+
+The air is one half-duplex channel: both modules' packets take turns on it, so what one
+direction sends is air time the other cannot use. Each module holds the data waiting for the air
+in its serial receive buffer, 202 bytes on an XBee 802.15.4 module; data that arrives while it
+is full is lost (neither UART here uses CTS flow control), as a real module loses it. Offered
+more than the air carries, the link loses frames at once instead of queueing them for ever.
 """
 
 from __future__ import annotations
