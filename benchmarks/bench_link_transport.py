@@ -11,7 +11,7 @@ with the codec's own decoding cost as the peer of every host CPU figure.
 Each link emulator runs with a fake controller in a child process, so the host process's CPU
 time is the host's alone; python-can's `virtual` bus exists only inside one process, so
 `can_virtual` runs its emulator in-process and says so (`cpu_includes_emulator: 1`). Rates are
-the realistic ones: serial 115200 baud through the pty (or TCP) emulator, XBee at ~35 kbit/s air
+the realistic ones: serial 115200 baud through the pty (or TCP) emulator, XBee at 35 kbit/s air
 rate behind a 115200-baud UART, CAN at 500 kbit/s.
 
 The sustainable telemetry rate is the highest rate of the ladder at which at least 99 % of the

@@ -4,12 +4,13 @@
     python benchmarks/bench_link_transport.py --telemetry  # the same, from the transport bench
 
 The daemon's Controller talks to the firmware mirror and the simulated plant running in real
-time behind the emulated XBee pair (API mode 2, ~35 kbit/s air, 202-byte module buffers), with
-the daemon's XBee rates for the mode: single samples (a host that does not offer batching, at
-`SINGLE_SAMPLE_RATES_HZ`), batched (both offer it, at the batched rates and the link's batch
-ages) and `ages_E_R` (the same with other batch ages: the latency/air trade; `--modes`). Each
-mode waits for the steady state (the clock sync's probes slowed down and no shedding; at most
-`SETTLE_MAX_S`, its time printed as `settle_s`), then measures for `MEASURE_S`:
+time behind the emulated XBee pair (API mode 2, 35 kbit/s air, checked against Digi's figures
+in `hil_sim.links.xbee`, 202-byte module buffers), with the daemon's XBee rates for
+the mode: single samples (a host that does not offer batching, at `SINGLE_SAMPLE_RATES_HZ`),
+batched (both offer it, at the batched rates and the link's batch ages) and `ages_E_R` (the
+same with other batch ages: the latency/air trade; `--modes`). Each mode waits for the steady
+state (the clock sync's probes slowed down and no shedding; at most `SETTLE_MAX_S`, its time
+printed as `settle_s`), then measures for `MEASURE_S`:
 
 - `<mode>.encoder_hz`, `<mode>.range_hz`: samples that reached the host's buffers per second;
 - `<mode>.air_share`: the air's busy time (every MAC attempt with its overhead, both ways);
@@ -17,8 +18,8 @@ mode waits for the steady state (the clock sync's probes slowed down and no shed
   host's heartbeats' (they fill its silences, every WATCHDOG_MS / 4);
 - `<mode>.sample_age_p50_ms` / `_p95_ms` (encoder), `range_age_p95_ms`: host arrival time
   minus the sample's MCU stamp mapped to host time (what the buffers index it by);
-- `<mode>.clock_error_max_us`: the clock mapping against the simulator's true crystal, sampled
-  every 0.5 s while measuring; `clock_probe_hz`: probes sent per second while measuring;
+- `<mode>.clock_error_p95_us`, `clock_error_max_us`: the clock mapping against the simulator's
+  true crystal, sampled every 0.5 s while measuring; `clock_probe_hz`: probes sent per second;
 - `<mode>.lost_frames`, `module_overflows`: controller frames lost, and lost in a full buffer.
 
 The emulator runs in this process (a thread for the plant and firmware), so no CPU figure is
@@ -183,6 +184,7 @@ async def _measure(
         "sample_age_p50_ms": statistics.median(sink.encoder_ms) if sink.encoder_ms else 0.0,
         "sample_age_p95_ms": _pct(sink.encoder_ms, 0.95),
         "range_age_p95_ms": _pct(sink.range_ms, 0.95),
+        "clock_error_p95_us": _pct(errors, 0.95),
         "clock_error_max_us": max(errors, default=float("nan")),
         "lost_frames": stats.rx_lost - lost0,
         "module_overflows": overflow,

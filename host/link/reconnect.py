@@ -174,7 +174,11 @@ class Supervisor:
             self.drop(f"heartbeat timeout: {detail}")
         elif event is LinkEvent.RESET_SUSPECTED:
             # Commands pending now went to a controller that may have forgotten them: fail
-            # them, re-handshake; the boot id then tells whether it really rebooted.
+            # them, re-handshake; the boot id then tells whether it really rebooted. Their
+            # timeouts were the reboot's, not the link's: the HELLO starts from the measured
+            # RTO, not one backed off towards rto_max_s (2 s lost per unanswered try).
+            if self.state is LinkState.UP:
+                self.session.rto.forget_backoff()
             self.drop(f"controller reset suspected: {detail}", reopen=False)
 
     def _on_transport_lost(self, exc: Exception | None) -> None:

@@ -118,13 +118,24 @@ class RtoEstimator:
         else:
             self.rttvar_s = (1 - RTO_BETA) * self.rttvar_s + RTO_BETA * abs(self.srtt_s - rtt_s)
             self.srtt_s = (1 - RTO_ALPHA) * self.srtt_s + RTO_ALPHA * rtt_s
-        raw = self.srtt_s + max(RTO_CLOCK_GRANULARITY_S, RTO_K * self.rttvar_s)
-        self.rto_s = self._clamp(raw)
+        self.forget_backoff()
 
     def backoff(self) -> float:
         """Double the RTO after a timeout (bounded); returns the new value."""
         self.rto_s = self._clamp(self.rto_s * 2)
         return self.rto_s
+
+    def forget_backoff(self) -> None:
+        """Back to the estimate from the RTT samples, as if no timer had expired since.
+
+        For timeouts that said nothing about the link: commands a rebooted controller never
+        answered. Without samples yet, the configured initial value.
+        """
+        if self.srtt_s is None or self.rttvar_s is None:
+            self.rto_s = self._cfg.rto_initial_s
+            return
+        raw = self.srtt_s + max(RTO_CLOCK_GRANULARITY_S, RTO_K * self.rttvar_s)
+        self.rto_s = self._clamp(raw)
 
     def _clamp(self, rto_s: float) -> float:
         """Keep the RTO inside the configured bounds."""
@@ -358,7 +369,12 @@ class Session:
             msg = f"{entry.name} seq {entry.seq}: no reply after {entry.tries} tries"
             entry.future.set_exception(CommandTimeout(msg))
             return
-        self.rto.backoff()
+        if entry.rto_s >= self.rto.rto_s:
+            # One back-off per loss episode, as RFC 6298's single timer: the commands in flight
+            # beside this one (held by the controller behind the same lost frame) time out at
+            # about the same moment, and doubling the shared RTO for each of them pinned it at
+            # rto_max_s, so a reconnect's HELLO and restore waited 2 s per lost frame.
+            self.rto.backoff()
         entry.rto_s = min(entry.rto_s * 2, self.config.rto_max_s)
         self.stats.retransmits += 1
         try:

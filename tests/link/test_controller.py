@@ -12,12 +12,12 @@ import pytest
 from host.link.common import BadIdentity, ControllerRejected, LinkDown, LinkEvent, LinkState
 from host.link.controller import Controller, MotionFailed
 from host.link.reconnect import BackoffConfig
-from host.link.session import SessionConfig
+from host.link.session import Session, SessionConfig
 from host.link.shedding import SheddingConfig
 from protocol import PROTOCOL_VERSION, SCHEMA, ParamId, cobs
 from protocol.crc import frame_crc
 from protocol.enums import NakCode, State, Stream
-from protocol.messages import MoveTo, Status, StreamSet
+from protocol.messages import Identify, MoveTo, Status, StreamSet
 from tests.link.fake_controller import FakeController
 
 CFG = SessionConfig(rto_initial_s=0.02, heartbeat_interval_s=0.02, dead_after_heartbeats=10)
@@ -146,6 +146,34 @@ async def test_controller_reset_is_detected_and_state_restored(rig) -> None:  # 
     assert fake.streams == {int(Stream.STATUS): 20, int(Stream.ENCODER): 200}
     assert fake.params == {2: 123_000}
     assert ctrl.session.stats.controller_resets == 1
+
+
+async def test_the_handshake_after_a_reset_starts_from_the_measured_rto(rig) -> None:  # type: ignore[no-untyped-def]
+    """Timeouts of commands a rebooted controller never answered are not the link's: the HELLO
+    goes out at the RTO the samples give, not one backed off to rto_max_s."""
+    fake, ctrl, _ = rig
+    session: Session = ctrl.session
+    measured = session.rto.rto_s
+    for _ in range(8):
+        session.rto.backoff()  # as the commands in flight at the reboot timed out
+    assert session.rto.rto_s == session.config.rto_max_s
+    at_hello: list[float] = []
+    handshake = session.handshake
+
+    async def recording() -> tuple[Identify, bool]:
+        at_hello.append(session.rto.rto_s)
+        return await handshake()
+
+    session.handshake = recording  # type: ignore[method-assign]
+    fake.send_heartbeat(5000)
+    fake.reboot(0xBEEF)
+    fake.send_heartbeat(10)  # uptime fell: reset suspected
+    for _ in range(100):
+        await asyncio.sleep(0.02)
+        if ctrl.link_state is LinkState.UP and ctrl.identity and ctrl.identity.boot_id == 0xBEEF:
+            break
+    assert at_hello
+    assert at_hello[0] == pytest.approx(measured)
 
 
 async def test_heartbeat_silence_drops_then_recovers(rig) -> None:  # type: ignore[no-untyped-def]

@@ -16,7 +16,7 @@ from host.link.common import (
     LinkEvent,
     ProtocolMismatch,
 )
-from host.link.session import Session, SessionConfig
+from host.link.session import RtoEstimator, Session, SessionConfig
 from host.transport.base import TransportError
 from host.transport.memory import Impairment
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, FrameDecoder, cobs, encode_frame
@@ -184,6 +184,41 @@ async def test_gives_up_after_max_tries_with_backoff(fake: FakeController) -> No
     assert session.stats.timeouts == 1
     assert session.stats.retransmits == 4
     assert 0.02 + 0.04 + 0.08 * 3 <= elapsed < 1.0  # 20, 40, 80, 80, 80 ms: doubling, capped
+
+
+async def test_commands_timing_out_together_back_off_the_shared_rto_once(
+    fake: FakeController,
+) -> None:
+    """Four commands lost at once are one loss episode: the RTO new commands start with doubles
+    per round of retransmissions, not per command (it used to reach rto_max_s at once)."""
+    cfg = SessionConfig(rto_initial_s=0.02, rto_min_s=0.02, rto_max_s=2.0, max_tries=3)
+    session = await start(fake, cfg)
+    await session.handshake()  # one RTT sample on a lossless memory wire: the RTO floor
+    base = session.rto.rto_s
+    fake.silent = True
+    results = await asyncio.gather(
+        *(session.request(ParamSet(param_id=2, value=i)) for i in range(4)),
+        return_exceptions=True,
+    )
+    await session.stop()
+    assert all(isinstance(r, CommandTimeout) for r in results)
+    assert session.stats.retransmits == 4 * 2
+    # Two rounds of retransmissions: the shared RTO doubled twice (eight doublings before).
+    assert session.rto.rto_s == pytest.approx(base * 4)
+
+
+def test_forgetting_the_backoff_returns_to_the_measured_rto() -> None:
+    """What a rebooted controller left unanswered does not slow the next handshake."""
+    rto = RtoEstimator(SessionConfig(rto_initial_s=0.5, rto_min_s=0.02, rto_max_s=2.0))
+    rto.forget_backoff()
+    assert rto.rto_s == 0.5  # no sample yet: the configured start
+    rto.sample(0.03)
+    measured = rto.rto_s
+    for _ in range(5):
+        rto.backoff()
+    assert rto.rto_s == 2.0
+    rto.forget_backoff()
+    assert rto.rto_s == measured
 
 
 async def test_window_is_respected(fake: FakeController) -> None:
