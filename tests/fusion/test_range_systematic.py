@@ -15,7 +15,6 @@ from host.demo.rigs import paper_demo_rig
 from host.fusion.chain_filter import ChainFilter
 from host.fusion.range_fix import RangeFixConfig, RangeFixer, Systematic
 from host.fusion.rig_references import chain_config, marks_sigma_mm
-from host.geometry.head import Rig
 from host.geometry.rangefinder import RangeScene, Surface, range_at
 from host.geometry.transforms import make_T, rotvec_to_R
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
@@ -25,7 +24,9 @@ from protocol.enums import Inputs
 
 SPEC = paper_demo_rig()
 HOST = build_kinematics(SPEC)
-SCENE = build_scene(SPEC)
+_SCENE = build_scene(SPEC)
+assert _SCENE is not None
+SCENE = _SCENE
 AHEAD = (0.0, math.pi / 2)
 ZERO_MM = 150.0
 PITCH_MM = 12.7
@@ -33,7 +34,6 @@ PITCH_MM = 12.7
 TRUE = dataclasses.replace(
     HOST, T_r_l=HOST.T_r_l @ make_T(rotvec_to_R([3e-3, -2e-3, 0.0]), [1.0, -2.0, 2.5])
 )
-assert SCENE is not None
 TRUE_SCENE = RangeScene(
     tuple(
         Surface(s.name, tuple(np.add(s.point_w, np.multiply(s.normal_w, off))), s.normal_w)
@@ -49,7 +49,6 @@ def _reading(s_mm: float) -> float:
 
 
 def _fixer(max_systematic_mm: float = 0.3) -> RangeFixer:
-    assert SCENE is not None
     config = RangeFixConfig(max_systematic_mm=max_systematic_mm)
     return RangeFixer(HOST, SCENE, config, systematic=Systematic.of(SPEC))
 
@@ -90,7 +89,8 @@ def test_on_the_straight_the_bias_the_zeros_survey_shares_cancels() -> None:
     unanchored, fixer = _fixer(max_systematic_mm=math.inf), _anchored()
     for s in np.arange(300.0, 3900.0, 400.0):
         fix, raw = fixer.fix(s, *AHEAD, _reading(s)), unanchored.fix(s, *AHEAD, _reading(s))
-        assert fix is not None and raw is not None
+        assert fix is not None
+        assert raw is not None
         assert abs(fix.s_mm - s) < 0.05  # relative to the zero: the mount's and wall's mm gone
         assert fix.systematic_mm < 0.05
         assert abs(raw.s_mm - s) > 1.0  # in the model's own arc lengths they are not
@@ -106,7 +106,8 @@ def test_on_a_corner_an_uncalibrated_mounts_bias_is_refused_not_fused() -> None:
         if fix is not None:
             errors.append(fix.s_mm - s)
             sigmas.append(fix.systematic_mm)
-    assert fixer.stats.biased > 10 and fixer.stats.fixes == 0
+    assert fixer.stats.biased > 10
+    assert fixer.stats.fixes == 0
     assert max(np.abs(errors)) > 2.0  # the bias is real ...
     assert np.all(np.abs(errors) < 3.0 * np.array(sigmas))  # ... and within its stated σ
 
