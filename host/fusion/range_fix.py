@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -65,6 +66,7 @@ class Systematic:
         sigma = np.array([s.sigma_mm for s in spec.hall.surfaces], dtype=np.float64)
         return cls(spec.rangefinder.mount.cov(), spec.track.placement.cov(), sigma)
 
+    @cached_property
     def covariance(self) -> FloatArray:
         """Over (mount δ, placement δ, surface offsets): the blocks are surveyed apart."""
         n = 12 + len(self.surface_sigma_mm)
@@ -177,7 +179,7 @@ class RangeFixer:
         g = self._gradient(s_mm, pan, tilt, hit, drds)
         if self.anchor is not None and self.anchor.gradient.shape == g.shape:
             g = g - self.anchor.gradient
-        return math.sqrt(max(float(g @ self.systematic.covariance() @ g), 0.0))
+        return math.sqrt(max(float(g @ self.systematic.covariance @ g), 0.0))
 
     def _gradient(self, s_mm: float, pan: float, tilt: float, hit: Hit, drds: float) -> FloatArray:
         """∂s_fix/∂(mount δ, placement δ, surface offsets), first order.
