@@ -12,9 +12,11 @@ and each surface's survey carry a σ. Their error is a bias shared by every read
 same geometry, which no number of readings averages away, so it is kept apart (`Systematic`)
 from the reading's noise. The controller's zero was surveyed through the same model (`anchor`):
 a fix is taken relative to that survey, so the part of the bias both share (the same wall, the
-same aim: a straight) cancels and only the difference counts. A fix whose remaining bias
-exceeds `max_systematic_mm` is refused: it would pull the filter off by more than the
-dead-reckoning it replaces (on a corner, an uncalibrated mount's mrad are millimetres).
+same aim: a straight) cancels and only the difference counts. A surface first met later (the
+side wall past a corner, surveyed apart from the end wall) is anchored on arrival against the
+filter's dead reckoning, over a run of fixes from one geometry, and used relative to that. A fix
+whose remaining bias exceeds `max_systematic_mm` is refused: it would pull the filter off by
+more than the dead reckoning it replaces (on a corner, an uncalibrated mount's mrad are mm).
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ MAX_PASSES = 4  # Gauss-Newton passes; a skip of a few teeth on a corner converg
 # Below this step the slope at the prediction serves: on the tightest corner (1 m radius) the
 # slope changes by well under 1 % per millimetre, so the step is right to a few µm.
 RELINEARISE_MM = 1.0
+ANCHOR_FIXES = 40  # fixes that anchor a newly met surface (0.2 s at 200 Hz; σ/√40 of a reading)
 
 
 @dataclass(frozen=True)
@@ -78,11 +81,12 @@ class Systematic:
 
 @dataclass(frozen=True)
 class Anchor:
-    """The zero's survey through this model: its fixes sit `offset_mm` from the rig's arc
-    lengths, with this sensitivity of the fix to the model's blocks."""
+    """Where one surface's fixes sit in the rig's arc lengths: `offset_mm` from them (σ), with
+    this sensitivity of the fix to the model's blocks where the offset was measured."""
 
     offset_mm: float
     gradient: FloatArray
+    sigma_mm: float = 0.0
 
 
 @dataclass
@@ -97,6 +101,7 @@ class RangeFixStats:
     weak: int = 0
     out_of_gate: int = 0
     biased: int = 0  # the model's bias there (beyond the zero's) exceeds max_systematic_mm
+    anchoring: int = 0  # taken to anchor a surface first met after the zero's
     off_track: int = 0  # the inversion would leave an open track's ends
     unconverged: int = 0
 
@@ -120,19 +125,27 @@ class RangeFixer:
     config: RangeFixConfig = field(default_factory=RangeFixConfig)
     stats: RangeFixStats = field(default_factory=RangeFixStats)
     systematic: Systematic | None = None  # None: the model taken as exact
-    anchor: Anchor | None = None  # None: fixes in the model's own arc lengths
+    anchor: Anchor | None = None  # the zero's survey; None: fixes in the model's arc lengths
+    anchors: dict[int, Anchor] = field(default_factory=dict)  # per surface (scene index)
+    # fixes gathered on a surface not anchored yet: (surface, first gradient, offsets)
+    _gathering: tuple[int, FloatArray, list[float]] | None = None
 
     def anchor_at(
         self, zero_s_mm: float, pan_rad: float, tilt_rad: float, surveyed_mm: float
     ) -> None:
         """The rig's zero, at `zero_s_mm` in its arc lengths, was surveyed through this model
-        from these head angles as `surveyed_mm`: take later fixes relative to that survey."""
+        from these head angles as `surveyed_mm`: take later fixes relative to that survey.
+
+        Other surfaces are anchored as the trolley reaches them (`fix`): their survey's error
+        relative to this one's is no smaller than the bias a fix may carry."""
         slope = self._slope(surveyed_mm, pan_rad, tilt_rad)
         gradient = (
             np.zeros(0) if slope is None or self.systematic is None
             else self._gradient(surveyed_mm, pan_rad, tilt_rad, *slope)
         )  # fmt: skip
         self.anchor = Anchor(surveyed_mm - zero_s_mm, gradient)
+        self.anchors = {} if slope is None else {slope[0].surface: self.anchor}
+        self._gathering = None
 
     def fix(
         self, s_pred_mm: float, pan_rad: float, tilt_rad: float, distance_mm: float | None
@@ -164,22 +177,49 @@ class RangeFixer:
             return None
         tan_inc = math.sqrt(max(0.0, 1.0 - hit.cos_incidence**2)) / hit.cos_incidence
         sigma_r = math.hypot(c.noise_mm, hit.distance_mm * tan_inc * c.head_sigma_rad)
-        bias = self._systematic(s, pan_rad, tilt_rad, hit, drds)
+        name = self.scene.surfaces[hit.surface].name
+        noise = sigma_r / abs(drds)
+        if self.systematic is None:
+            st.fixes += 1
+            return RangeFix(s - offset, noise, name)
+        g = self._gradient(s, pan_rad, tilt_rad, hit, drds)
+        anchor = self.anchors.get(hit.surface)
+        if anchor is None and self.anchor is not None:
+            self._gather(hit.surface, g, s - (s_pred_mm - offset), noise)
+            return None
+        if anchor is not None:
+            g = g - anchor.gradient
+        bias = math.hypot(self._sigma(g), anchor.sigma_mm if anchor else 0.0)
         if bias > c.max_systematic_mm:
             st.biased += 1
             return None
         st.fixes += 1
-        name = self.scene.surfaces[hit.surface].name
-        return RangeFix(s - offset, math.hypot(sigma_r / abs(drds), bias), name, bias)
+        return RangeFix(
+            s - (anchor.offset_mm if anchor else 0.0), math.hypot(noise, bias), name, bias
+        )
 
-    def _systematic(self, s_mm: float, pan: float, tilt: float, hit: Hit, drds: float) -> float:
-        """σ of the fix's error from the model's blocks, less what the zero's survey shares."""
-        if self.systematic is None:
-            return 0.0
-        g = self._gradient(s_mm, pan, tilt, hit, drds)
-        if self.anchor is not None and self.anchor.gradient.shape == g.shape:
-            g = g - self.anchor.gradient
+    def _sigma(self, g: FloatArray) -> float:
+        """σ of a fix's error from the model's blocks, for its gradient g."""
+        assert self.systematic is not None
         return math.sqrt(max(float(g @ self.systematic.covariance @ g), 0.0))
+
+    def _gather(self, surface: int, g: FloatArray, offset_mm: float, noise_mm: float) -> None:
+        """A surface first met after the zero's (past a corner): its offset from the rig's arc
+        lengths is measured against the filter's prediction (dead reckoning since the last
+        fix) over ANCHOR_FIXES fixes from one geometry, and its fixes are used from then on."""
+        self.stats.anchoring += 1
+        got = self._gathering
+        if (
+            got is None
+            or got[0] != surface
+            or self._sigma(g - got[1]) > self.config.max_systematic_mm
+        ):
+            got = self._gathering = (surface, g, [])
+        got[2].append(offset_mm)
+        if len(got[2]) >= ANCHOR_FIXES:
+            sigma = noise_mm / math.sqrt(len(got[2]))
+            self.anchors[surface] = Anchor(float(np.mean(got[2])), got[1], sigma)
+            self._gathering = None
 
     def _gradient(self, s_mm: float, pan: float, tilt: float, hit: Hit, drds: float) -> FloatArray:
         """∂s_fix/∂(mount δ, placement δ, surface offsets), first order.
