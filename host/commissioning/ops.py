@@ -248,8 +248,9 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
             io, tap, pose_at, det, view, span, speed, passes, progress
         )
         progress["phase"] = "solving"
+        clock_ms = env.spec().camera.clock_sync.sigma
         out = await asyncio.to_thread(
-            latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits
+            latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits, clock_ms
         )
         updates = latency_run.latency_update(out) if out.passed else None
         page = latency_run.latency_page(out, limits)
