@@ -6,14 +6,16 @@ The overlay of a workpiece point X_p is u = π_θ(T_c_w(s, pan, tilt) · T_w_p �
 
 Every calibrated quantity enters: the intrinsics θ (10, Table 1's and p1, p2, k3), M_cr and the
 track placement and the workpiece frame (local perturbations δ = (ω, t), as the rig file keeps
-their covariances), the arc length s (the chain filter's σ, plus the stamp's error × speed: a
-stamp off by δt, from clock sync or the exposure latency's σ, puts the trolley v·δt away), and
-the head angles (their noise). Blocks solved together are correlated (the rig file's
-`[covariance]`: a focal length a little long and a camera a little farther away draw the same
-overlay), and the cross terms enter Σ. First order: Σ_u = J Σ Jᵀ with J by central differences
-over all 32 inputs; each source's share is its own block's J Σ Jᵀ (the shares do not add up to
-the total when sources are correlated: the cross terms are in the total only). `monte_carlo`
-samples the same inputs through the same projection; the test holds the two together.
+their covariances), the arc length s as the controller's zero (`track.home`, shared with all
+that was measured through it) plus the error beyond it (the chain filter's σ; 0 for the
+encoder), plus the stamp's error × speed (a stamp off by δt, from clock sync or the exposure
+latency's σ, puts the trolley v·δt away), and the head angles (their noise). Blocks solved
+together are correlated (the rig file's `[covariance]`: a focal length a little long and a
+camera a little farther away draw the same overlay), and the cross terms enter Σ. First order:
+Σ_u = J Σ Jᵀ with J by central differences over all 33 inputs; each source's share is its own
+block's J Σ Jᵀ (the shares do not add up to the total when sources are correlated: the cross
+terms are in the total only). `monte_carlo` samples the same inputs through the same
+projection; the test holds the two together.
 
 What it predicts: the spread of the overlay's error over rigs calibrated like this one, i.e.
 drawn minus true pixel of a workpiece point, whose frame is known as the rig file says. A
@@ -100,12 +102,12 @@ class BudgetInputs:
     sigma_latency_s: float = 0.0  # the exposure latency's σ (another error of the stamp)
     sigma_arc_radius_mm: float = 0.0  # of every arc's radius, one error shared by the arcs
     sigma_home_mm: float = 0.0  # the controller's zero: in every arc length, shared by surveys
-    # 32×32 cross terms between sources (their own diagonal blocks are ignored: those are the
+    # N_INPUTS² cross terms between sources (their own diagonal blocks are ignored: those are the
     # fields above, which a caller may replace alone), None: independent sources
     cross: FloatArray | None = None
 
     def covariance(self) -> FloatArray:
-        """The 32×32 input covariance: each source's block and the cross terms between them."""
+        """The N_INPUTS² input covariance: each source's block and the cross terms between them."""
         S = np.zeros((N_INPUTS, N_INPUTS))
         if self.cross is not None:
             S[:] = self.cross
