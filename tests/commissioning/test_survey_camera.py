@@ -74,7 +74,7 @@ def _exact(rig: Rig, track_cov: np.ndarray | None = None) -> RigSpec:
         nominal.track.placement, matrix=rig.track.T_w_track,
         covariance=np.zeros((6, 6)) if track_cov is None else track_cov,
     )  # fmt: skip
-    intr = dataclasses.replace(nominal.camera.intrinsics, covariance=np.zeros((10, 10)))
+    intr = dataclasses.replace(nominal.camera.intrinsics, covariance=((0.0,) * 10,) * 10)
     home = dataclasses.replace(nominal.track.home, sigma=0.0)
     return dataclasses.replace(
         nominal,
