@@ -9,6 +9,7 @@ writes nothing. Reports go to `report_root`.
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import time
 from collections.abc import Awaitable, Callable, Mapping
@@ -38,6 +39,21 @@ DEFAULT_REPORT_ROOT = Path("orbitar-commissioning")
 BUILTIN_MODEL = "builtin:manipulator"
 BUDGET_CACHE_S = 2.0
 REPORT_DIR = "commissioning"  # beside the rig file
+
+
+@dataclass(frozen=True)
+class BudgetValue:
+    """One evaluation of the error budget: σ (None: unknown), where, and when."""
+
+    sigma_px: float | None
+    pose: tuple[float, float, float]  # controller position (mm), pan, tilt (rad)
+    pose_at_s: float  # host monotonic time of the controller data the pose came from
+    computed_at_s: float
+
+
+def _budget_key(pose: tuple[float, float, float]) -> tuple[int, int, int]:
+    """Poses within 1 mm and 1 mrad share a budget."""
+    return round(pose[0]), round(pose[1] * 1e3), round(pose[2] * 1e3)
 
 
 def _no_frames() -> FrameTap | None:
@@ -92,30 +108,59 @@ class CommissioningEnv:
     # the rig description as it stands (σ of every block: the rangefinder runs propagate them)
     spec: Callable[[], RigSpec] = _nominal_spec
 
-    _budget_cache: tuple[tuple[float, float, float], float, float | None] | None = field(
-        default=None, init=False, repr=False
-    )
+    _budget_last: BudgetValue | None = field(default=None, init=False, repr=False)
+    _budget_task: asyncio.Task[None] | None = field(default=None, init=False, repr=False)
 
-    def overlay_sigma_px(self, snapshot: Mapping[str, Any]) -> float | None:
-        """Predicted overlay σ at the controller's pose (None when unknown, logged).
+    def overlay_budget(self, snapshot: Mapping[str, Any]) -> dict[str, Any]:
+        """The status op's budget fields: the last predicted overlay σ (px; None when unknown),
+        the pose it was evaluated at and that pose's age (s).
 
-        It costs some tens of milliseconds on the daemon's loop, so a result is reused while
-        the pose stays within 1 mm and 1 mrad for up to BUDGET_CACHE_S.
+        Never computed on the caller's loop (tens of milliseconds on a loaded machine starved
+        the link's heartbeats): a pose that moved by 1 mm or 1 mrad, or a value older than
+        BUDGET_CACHE_S (a calibration may have rewritten the rig file), starts one evaluation
+        in a worker thread, and a later status reports it.
         """
         pos, head = snapshot.get("position_mm"), snapshot.get("head_rad")
-        if pos is None or not head:
-            return None
-        key = (round(float(pos)), round(float(head[0]) * 1e3), round(float(head[1]) * 1e3))
         now = time.monotonic()
-        cached = self._budget_cache
-        if cached is not None and cached[0] == key and now - cached[1] < BUDGET_CACHE_S:
-            return cached[2]
-        value = self._overlay_sigma(float(pos), float(head[0]), float(head[1]))
-        self._budget_cache = (key, now, value)
-        return value
+        if pos is not None and head:
+            pose = (float(pos), float(head[0]), float(head[1]))
+            age = snapshot.get("age_s")
+            self._refresh(pose, now - (float(age) if isinstance(age, int | float) else 0.0))
+        last = self._budget_last
+        if last is None:
+            return {
+                "overlay_sigma_px": None,
+                "overlay_sigma_pose": None,
+                "overlay_sigma_age_s": None,
+            }
+        s_mm, pan, tilt = last.pose
+        return {
+            "overlay_sigma_px": last.sigma_px,
+            "overlay_sigma_pose": {"position_mm": s_mm, "pan_rad": pan, "tilt_rad": tilt},
+            "overlay_sigma_age_s": round(now - last.pose_at_s, 3),
+        }
+
+    def _refresh(self, pose: tuple[float, float, float], pose_at_s: float) -> None:
+        """Start an evaluation at `pose` unless one runs or the last one still holds."""
+        if self._budget_task is not None and not self._budget_task.done():
+            return
+        last = self._budget_last
+        fresh = last is not None and time.monotonic() - last.computed_at_s < BUDGET_CACHE_S
+        if fresh and last is not None and _budget_key(last.pose) == _budget_key(pose):
+            return
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:  # no loop (a synchronous caller): the last value stands
+            return
+
+        async def evaluate() -> None:
+            value = await asyncio.to_thread(self._overlay_sigma, *pose)
+            self._budget_last = BudgetValue(value, pose, pose_at_s, time.monotonic())
+
+        self._budget_task = loop.create_task(evaluate())
 
     def _overlay_sigma(self, pos: float, pan: float, tilt: float) -> float | None:
-        """The budget at one pose."""
+        """The budget at one pose (in a worker thread: the rig file is read there too)."""
         head = (pan, tilt)
         try:
             got = self.budget()

@@ -195,9 +195,14 @@ def board_arc_length(rig: Rig, camera: CameraModel, T_w_b: FloatArray, f: PassFr
 
 def judge(
     frames: Sequence[PassFrame], rig: Rig, camera: CameraModel, T_w_b: FloatArray, old_ms: float,
-    limits: LatencyThresholds,
+    limits: LatencyThresholds, clock_sigma_ms: float = 0.0,
 ) -> LatencyOutcome:  # fmt: skip
-    """Regress s(stamp) − s* on the speed: slope δ, intercept b."""
+    """Regress s(stamp) − s* on the speed: slope δ, intercept b.
+
+    δ's σ is the regression's and `clock_sigma_ms` in quadrature: the pose source's samples
+    reach the frames' clock through the link's clock sync, whose error at the time is common to
+    every frame (the regression takes it for latency and its residuals cannot show it).
+    """
     n = len(frames)
     speeds = [f.v_mm_s for f in frames]
     if n < limits.min_frames or not (min(speeds, default=0) < 0 < max(speeds, default=0)):
@@ -211,7 +216,7 @@ def judge(
     r = d - A @ coef
     var = float(r @ r) / max(n - 2, 1)
     cov = var * np.linalg.inv(A.T @ A)
-    delta, sigma = float(coef[0]), float(np.sqrt(cov[0, 0]))
+    delta, sigma = float(coef[0]), float(np.hypot(np.sqrt(cov[0, 0]), clock_sigma_ms))
     out = LatencyOutcome(True, [], old_ms, delta, sigma, float(coef[1]), n, float(np.sqrt(var)))
     if sigma > limits.max_sigma_ms:
         out.passed = False

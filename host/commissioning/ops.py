@@ -299,8 +299,9 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
             io, tap, pose_at, det, view, span, speed, passes, progress
         )
         progress["phase"] = "solving"
+        clock_ms = env.spec().camera.clock_sync.sigma
         out = await asyncio.to_thread(
-            latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits
+            latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits, clock_ms
         )
         updates = latency_run.latency_update(out) if out.passed else None
         page = latency_run.latency_page(out, limits)
@@ -391,13 +392,7 @@ def _survey_workpiece_camera(
         io = RigIO(controller, tap, home_s_mm=env.home_s_mm())
         views = await targets_run.capture(io, views, rig, camera, points_w, progress)
         progress["phase"] = "solving"
-        placement = spec.track.placement
-        track_cov = (
-            np.array(placement.covariance, dtype=np.float64)
-            if placement.covariance is not None
-            else np.diag(np.square([*placement.sigma_rad, *placement.sigma_mm]))
-        )
-        out = await asyncio.to_thread(targets_run.judge, views, rig, camera, model_p, track_cov)
+        out = await asyncio.to_thread(targets_run.judge, views, rig, camera, model_p, spec)
         updates = targets_run.workpiece_update(out, spec) if out.passed else None
         page = targets_run.page(out)
         return await _conclude(env, args, progress, "workpiece", out.summary(), page, updates)

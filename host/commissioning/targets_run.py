@@ -9,31 +9,36 @@ home) are intersected by least squares. The frame is the least-squares fit of th
 points onto the triangulated ones (host.commissioning.survey.fit_frame).
 
 Measured through the same rig the overlay is drawn with, the workpiece inherits the rig's own
-world-placement error (the board survey's, the home's): the overlay, which needs the camera
-relative to the workpiece only, does not see it. The frame's covariance therefore adds the
-track placement's to the fit's, moved onto the workpiece (both shift together).
+errors: a focal length a little long, M_cr a little off, the track placed a little wrong or the
+zero a little ahead, and the frame moves with them, so that from poses near the survey's the
+overlay, which needs the camera relative to the workpiece only, hardly sees them. The frame's
+error is therefore written as δp = Σ_x B_x δx + n (host.rig.with_block): B_x = ∂frame/∂x for
+every calibrated block x the rays went through (intrinsics, M_cr, track placement, the zero),
+by central differences of the whole triangulation and fit; n from the found pixels' σ (the
+rays' misfit) through the same differences, so its shape follows the rays' geometry.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
-from host.calibration.handeye import adjoint
 from host.commissioning.motion import RigIO
 from host.commissioning.plan import ViewTarget, aim_at_pixel, within_limits
 from host.commissioning.report import Page, text_table
 from host.commissioning.survey import WorkpieceFit, fit_frame
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
-from host.geometry.transforms import FloatArray, invert_T, transform_points
-from host.rig import Pose6, Provenance, RigSpec, with_block
+from host.geometry.transforms import FloatArray, invert_T, make_T, rotvec_to_R, transform_points
+from host.rig import INTRINSIC_KEYS, Pose6, Provenance, RigSpec, with_block
 
 WINDOW_PX = 40  # a target is looked for this far around its predicted pixel
 EDGE_MARGIN_PX = 60  # a target predicted nearer the image edge is left for another view
@@ -47,6 +52,15 @@ MIN_POINTS = 3
 MIN_SIGMA_PX = 0.02  # the centroid's σ is never taken as better than this
 MAX_RESIDUAL_MM = 3.0
 MAX_RAY_PX = 1.0  # a ray further than this from its point (reprojected) is a mismatch
+# the calibrated blocks the rays go through, and the central-difference steps of their
+# parameters (px and distortion; rad and mm of the local (ω, t); mm of the zero) and of a pixel
+UPSTREAM_STEPS = {
+    "camera.intrinsics": (1e-3,) * 5 + (1e-6,) * 5,
+    "head.m_cr": (1e-6,) * 3 + (1e-3,) * 3,
+    "track.placement": (1e-6,) * 3 + (1e-3,) * 3,
+    "track.home": (1e-3,),
+}
+PIXEL_STEP = 1e-3
 
 
 @dataclass
@@ -247,9 +261,10 @@ class CameraSurvey:
     points: list[Triangulated]
     sigma_px: float = math.nan
     fit: WorkpieceFit | None = None
-    covariance: FloatArray | None = None  # the fit's plus the track placement's
-    # ∂(frame's local error)/∂(track placement's): the survey moves with the track it used
-    track_jacobian: FloatArray | None = None
+    covariance: FloatArray | None = None  # absolute: the rig's errors carried in, and the noise
+    # ∂(frame's local error)/∂(each calibrated block's): the survey moves with the rig it used
+    depends: dict[str, FloatArray] = field(default_factory=dict)
+    noise: FloatArray | None = None  # the found pixels' share (6×6)
 
     def summary(self) -> dict[str, Any]:
         """Plain values for the status op and the report."""
@@ -274,10 +289,10 @@ class CameraSurvey:
 
 
 def judge(
-    views: list[TargetView], rig: Rig, camera: CameraModel, model_p: FloatArray,
-    track_cov: FloatArray,
-) -> CameraSurvey:  # fmt: skip
-    """Triangulate, fit the model's points, and judge (never raises on bad data)."""
+    views: list[TargetView], rig: Rig, camera: CameraModel, model_p: FloatArray, spec: RigSpec
+) -> CameraSurvey:
+    """Triangulate, fit the model's points, and judge (never raises on bad data); `rig` and
+    `camera` are `spec`'s, whose covariances the frame's takes in."""
     points, sigma_px = triangulate(views, rig, camera, len(model_p))
     out = CameraSurvey(False, [], views, points, sigma_px)
     if len(points) < MIN_POINTS:
@@ -301,10 +316,11 @@ def judge(
     except ValueError as exc:
         out.reasons = [str(exc)]
         return out
-    T_p_k = invert_T(fit.T_w_p) @ rig.track.T_w_track
-    Ad = adjoint(T_p_k)  # the track's local error moves the triangulated workpiece with it
-    out.fit, out.covariance = fit, fit.covariance + Ad @ track_cov @ Ad.T
-    out.track_jacobian = Ad
+    out.fit = fit
+    out.depends, out.noise = sensitivities(views, rig, camera, model_p, fit.T_w_p, sigma_px)
+    out.covariance, _ = with_block(
+        spec, "workpiece.frame", out.noise, Provenance(), depends=out.depends
+    )
     if fit.rms_mm > MAX_RESIDUAL_MM:
         why = f"fit RMS {fit.rms_mm:.2f} mm > {MAX_RESIDUAL_MM} mm (a target off its point?)"
         out.reasons = [why]
@@ -317,21 +333,83 @@ def judge(
     return out
 
 
+def sensitivities(
+    views: Sequence[TargetView], rig: Rig, camera: CameraModel, model_p: FloatArray,
+    T_w_p: FloatArray, sigma_px: float,
+) -> tuple[dict[str, FloatArray], FloatArray]:  # fmt: skip
+    """∂(frame's local error)/∂(each UPSTREAM block, in the budget's conventions), and the
+    noise covariance of σ_px on every found pixel, by central differences of the survey."""
+
+    def frame(vs: Sequence[TargetView], r: Rig, c: CameraModel) -> FloatArray:
+        pts, _ = triangulate(vs, r, c, len(model_p))
+        T = fit_frame(np.array([p.point_w for p in pts]), model_p[[p.index for p in pts]], 1.0)
+        D = invert_T(T_w_p) @ T.T_w_p
+        R = D[:3, :3]
+        w = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+        return np.concatenate([w, D[:3, 3]])
+
+    Variant = tuple[Sequence[TargetView], Rig, CameraModel]
+
+    def central(make: Callable[[float], Variant], h: float) -> FloatArray:
+        out: FloatArray = (frame(*make(h)) - frame(*make(-h))) / (2 * h)
+        return out
+
+    def upstream(name: str, j: int, h: float) -> Variant:
+        """The views and rig with parameter j of block `name` off by h."""
+        if name == "camera.intrinsics":
+            key = INTRINSIC_KEYS[j]
+            return views, rig, dataclasses.replace(camera, **{key: getattr(camera, key) + h})
+        if name == "head.m_cr":
+            return views, dataclasses.replace(rig, T_r_c=rig.T_r_c @ _step(j, h)), camera
+        if name == "track.placement":
+            track = dataclasses.replace(rig.track, T_w_track=rig.track.T_w_track @ _step(j, h))
+            return views, dataclasses.replace(rig, track=track), camera
+        return [dataclasses.replace(v, s_mm=v.s_mm + h) for v in views], rig, camera  # the zero
+
+    def nudged(i: int, k: int, axis: int, h: float) -> Variant:
+        """The views with one found pixel off by h along one axis."""
+        uv = views[i].found[k].copy()
+        uv[axis] += h
+        moved = dataclasses.replace(views[i], found={**views[i].found, k: uv})
+        return [*views[:i], moved, *views[i + 1 :]], rig, camera
+
+    depends = {
+        name: np.column_stack([
+            central(functools.partial(upstream, name, j), step) for j, step in enumerate(steps)
+        ])
+        for name, steps in UPSTREAM_STEPS.items()
+    }  # fmt: skip
+    noise = np.zeros((6, 6))
+    for i, v in enumerate(views):
+        for k in v.found:
+            for axis in (0, 1):
+                col = central(functools.partial(nudged, i, k, axis), PIXEL_STEP)
+                noise += sigma_px**2 * np.outer(col, col)
+    return depends, noise
+
+
+def _step(j: int, h: float) -> FloatArray:
+    """exp of a step h along local axis j (ω 0-2, t 3-5)."""
+    d = np.zeros(6)
+    d[j] = h
+    out: FloatArray = make_T(rotvec_to_R(d[:3]), d[3:])
+    return out
+
+
 def workpiece_update(out: CameraSurvey, spec: RigSpec) -> dict[str, Any]:
     """`workpiece.frame` for the rig file, and the joint covariance with its cross terms.
 
-    The frame was triangulated through the track placement of `spec`, so it shares that
-    placement's error: written as independent, the budget would count it twice (a surveyed
-    workpiece and the camera move together and the overlay does not see it).
+    The frame was triangulated through the rig of `spec`, so it shares its errors: written as
+    independent, the budget would count them twice (a workpiece surveyed through the rig and
+    the camera drawing it move together, and the overlay hardly sees it).
     """
-    if not out.passed or out.fit is None or out.track_jacobian is None:
+    if not out.passed or out.fit is None or out.noise is None:
         raise ValueError("only a passing survey is written")
     prov = Provenance.now(
         "survey workpiece (camera, targets on the feature points)", out.fit.rms_mm, "mm",
         len(out.views),
     )  # fmt: skip
-    depends = {"track.placement": out.track_jacobian}
-    cov, joint = with_block(spec, "workpiece.frame", out.fit.covariance, prov, depends=depends)
+    cov, joint = with_block(spec, "workpiece.frame", out.noise, prov, depends=out.depends)
     d = np.sqrt(np.clip(np.diag(cov), 0.0, None))
     rad, mm = (float(d[0]), float(d[1]), float(d[2])), (float(d[3]), float(d[4]), float(d[5]))
     frame = Pose6(out.fit.T_w_p, rad, mm, cov, prov)

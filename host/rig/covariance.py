@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from host.geometry.transforms import FloatArray
-from host.rig.schema import COVARIANCE_BLOCKS, JointCovariance, Provenance, RigSpec
+from host.rig.schema import COVARIANCE_BLOCKS, JointCovariance, Provenance, RigSpec, Scalar
 
 SYMMETRY_RTOL = 1e-9  # of the largest entry: what a written and reread matrix may differ by
 PSD_RTOL = 1e-9  # an eigenvalue this far below 0 (of the largest) is rounding, not an error
@@ -31,7 +31,10 @@ def block_covariance(spec: RigSpec, name: str) -> FloatArray:
     section, _, attr = name.partition(".")
     if name not in COVARIANCE_BLOCKS:
         raise KeyError(name)
-    out: FloatArray = getattr(getattr(spec, section), attr).cov()
+    block = getattr(getattr(spec, section), attr)
+    if isinstance(block, Scalar):
+        return np.array([[block.sigma**2]])
+    out: FloatArray = block.cov()
     return out
 
 

@@ -86,6 +86,7 @@ COVARIANCE_BLOCKS = {
     "track.placement": 6,
     "workpiece.frame": 6,
     "rangefinder.mount": 6,
+    "track.home": 1,  # the controller's zero: every arc length the host computes carries its error
 }
 
 

@@ -198,8 +198,8 @@ class Daemon:
             "bus": self.bus.stats() if self.bus is not None else None,
             "recording": self.recorder.status() if self.recorder else {"state": "off"},
             "output_errors": self.output_errors,
-            # the error budget at the current pose (docs/COMMISSIONING.md), None when unknown
-            "overlay_sigma_px": self.commissioning.overlay_sigma_px(self.controller.snapshot()),
+            # the error budget's last value, its pose and age (docs/COMMISSIONING.md)
+            **self.commissioning.overlay_budget(self.controller.snapshot()),
             "frames": frame_loop_status(self.frame_loop),
         }
 

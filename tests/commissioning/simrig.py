@@ -204,6 +204,19 @@ class Harness:
     async def request(self, op: str, **args: Any) -> Any:
         return await self.client.request(op, **args)
 
+    async def budget_at(self, pan: float, tilt: float, timeout_s: float = 10.0) -> Any:
+        """The status' service part once its error budget is of these head angles (the daemon
+        evaluates it in the background and reports the pose it was evaluated at)."""
+        deadline = asyncio.get_running_loop().time() + timeout_s
+        while True:
+            service = (await self.request("status"))["service"]
+            at = service["overlay_sigma_pose"]
+            if at is not None and abs(at["pan_rad"] - pan) + abs(at["tilt_rad"] - tilt) < 2e-3:
+                return service
+            if asyncio.get_running_loop().time() > deadline:
+                raise AssertionError(f"no error budget at pan {pan}, tilt {tilt}: {service}")
+            await asyncio.sleep(0.05)
+
 
 @asynccontextmanager
 async def sim_daemon(

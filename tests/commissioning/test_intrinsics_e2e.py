@@ -100,7 +100,7 @@ async def test_stop_cancels_the_run_and_the_rig_file_is_untouched(tmp_path: Path
         s_now = (await h.request("status"))["controller"]["position_mm"] + h.loop.home_s_mm
         pan, tilt = Rig().aim(s_now, [-300.0, -300.0, 300.0])  # look at the workpiece
         await h.request("head", pan_rad=pan, tilt_rad=tilt)
-        service = (await h.request("status"))["service"]
+        service = await h.budget_at(pan, tilt)
     assert status["state"] == "cancelled"
     assert status["reason"] == "STOP"
     assert h.rig_path.read_text() == before

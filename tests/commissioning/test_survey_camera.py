@@ -66,10 +66,28 @@ def test_nothing_is_found_where_there_is_no_target() -> None:
     assert targets_run.find_target(img, np.array([100.0, 100.0])) is None
 
 
+def _exact(rig: Rig, track_cov: np.ndarray | None = None) -> RigSpec:
+    """A rig file whose blocks are known exactly (but the placement's `track_cov`), σ 0."""
+    nominal = RigSpec()
+    zero = dataclasses.replace(nominal.head.m_cr, matrix=rig.T_r_c, covariance=np.zeros((6, 6)))
+    placement = dataclasses.replace(
+        nominal.track.placement, matrix=rig.track.T_w_track,
+        covariance=np.zeros((6, 6)) if track_cov is None else track_cov,
+    )  # fmt: skip
+    intr = dataclasses.replace(nominal.camera.intrinsics, covariance=((0.0,) * 10,) * 10)
+    home = dataclasses.replace(nominal.track.home, sigma=0.0)
+    return dataclasses.replace(
+        nominal,
+        track=dataclasses.replace(nominal.track, placement=placement, home=home),
+        head=dataclasses.replace(nominal.head, m_cr=zero),
+        camera=dataclasses.replace(nominal.camera, intrinsics=intr),
+    )
+
+
 def test_the_frame_comes_back_through_the_rig_it_was_seen_with() -> None:
     rig, camera = Rig(), CameraModel()
     views = _views(rig, camera, T_W_P)
-    out = targets_run.judge(views, rig, camera, FEATURES_P, np.zeros((6, 6)))
+    out = targets_run.judge(views, rig, camera, FEATURES_P, _exact(rig))
     assert out.passed, out.reasons
     assert out.fit is not None
     assert out.covariance is not None
@@ -84,7 +102,7 @@ def test_the_track_placement_uncertainty_is_carried_into_the_frame() -> None:
     rig, camera = Rig(), CameraModel()
     views = _views(rig, camera, T_W_P)
     track_cov = np.diag([1e-12] * 3 + [4.0] * 3)  # translation only: 2 mm
-    out = targets_run.judge(views, rig, camera, FEATURES_P, track_cov)
+    out = targets_run.judge(views, rig, camera, FEATURES_P, _exact(rig, track_cov))
     assert out.passed
     assert out.covariance is not None
     assert np.sqrt(np.diag(out.covariance))[3:].min() == pytest.approx(2.0, rel=0.1)
@@ -96,28 +114,57 @@ def test_the_written_frame_shares_the_track_placement_error_it_was_seen_through(
     rig, camera = Rig(), CameraModel()
     views = _views(rig, camera, T_W_P)
     track_cov = np.diag([1e-6] * 3 + [4.0] * 3)  # 1 mrad, 2 mm
-    placement = dataclasses.replace(
-        RigSpec().track.placement, matrix=rig.track.T_w_track, covariance=track_cov
-    )
-    spec = dataclasses.replace(
-        RigSpec(), track=dataclasses.replace(RigSpec().track, placement=placement)
-    )
-    out = targets_run.judge(views, rig, camera, FEATURES_P, track_cov)
+    spec = _exact(rig, track_cov)
+    out = targets_run.judge(views, rig, camera, FEATURES_P, spec)
     assert out.passed
-    assert out.fit is not None
-    assert out.track_jacobian is not None
+    assert out.noise is not None
     written = with_updates(spec, targets_run.workpiece_update(out, spec))
     joint = covariance_over(written, ["track.placement", "workpiece.frame"])
-    B = out.track_jacobian
+    B = out.depends["track.placement"]
     relative = np.hstack([-B, np.eye(6)])  # δp − B δtrack: the frame against the track
-    assert relative @ joint @ relative.T == pytest.approx(out.fit.covariance, abs=1e-9)
+    assert relative @ joint @ relative.T == pytest.approx(out.noise, abs=1e-9)
     assert np.sqrt(np.diag(joint[6:, 6:]))[3:].min() > 1.5  # absolute: the placement's 2 mm
+
+
+def test_the_frame_moves_with_every_block_it_was_seen_through() -> None:
+    """∂frame/∂block, as the survey writes it, against the frame a rig off by a small step
+    finds from the same views: a track placed elsewhere carries the workpiece along whole,
+    and M_cr, a focal length and the zero move it as the rays say."""
+    rig, camera = Rig(), CameraModel()
+    views = _views(rig, camera, T_W_P)
+    out = targets_run.judge(views, rig, camera, FEATURES_P, _exact(rig))
+    assert out.fit is not None
+    shift = out.depends["track.placement"][:, 3:]  # a translation of the track, in its frame
+    R_p_k = out.fit.T_w_p[:3, :3].T @ rig.track.T_w_track[:3, :3]
+    assert shift[3:] == pytest.approx(R_p_k, abs=1e-6)
+    assert np.abs(shift[:3]).max() < 1e-9
+
+    def moved_by(vs: list[targets_run.TargetView], r: Rig, c: CameraModel) -> np.ndarray:
+        again = targets_run.judge(vs, r, c, FEATURES_P, _exact(r))
+        assert out.fit is not None
+        assert again.fit is not None
+        D: np.ndarray = np.linalg.inv(out.fit.T_w_p) @ again.fit.T_w_p
+        return D[:3, 3]
+
+    d_m = np.array([0.0, 0.0, 0.0, 0.5, -0.3, 0.2])  # M_cr off by half a millimetre
+    off = dataclasses.replace(rig, T_r_c=rig.T_r_c @ make_T(rotvec_to_R(d_m[:3]), d_m[3:]))
+    assert moved_by(views, off, camera) == pytest.approx(
+        out.depends["head.m_cr"][3:] @ d_m, abs=0.02
+    )
+    d_c = np.zeros(10)
+    d_c[0] = 5.0  # a focal length 5 px long
+    longer = dataclasses.replace(camera, fx=camera.fx + 5.0)
+    want = out.depends["camera.intrinsics"][3:] @ d_c
+    assert moved_by(views, rig, longer) == pytest.approx(want, abs=0.02)
+    ahead = [dataclasses.replace(v, s_mm=v.s_mm + 0.5) for v in views]  # the zero 0.5 mm on
+    want = out.depends["track.home"][3:, 0] * 0.5
+    assert moved_by(ahead, rig, camera) == pytest.approx(want, abs=0.02)
 
 
 def test_one_view_per_target_is_refused_with_a_reason() -> None:
     rig, camera = Rig(), CameraModel()
     views = _views(rig, camera, T_W_P)[:1]
-    out = targets_run.judge(views, rig, camera, FEATURES_P, np.zeros((6, 6)))
+    out = targets_run.judge(views, rig, camera, FEATURES_P, _exact(rig))
     assert not out.passed
     assert "triangulated" in out.reasons[0]
 

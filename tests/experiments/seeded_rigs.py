@@ -26,6 +26,7 @@ from hil_sim.true_rig import true_rig
 from host.calibration.board import BoardDetector
 from host.calibration.handeye import HandEyeView, adjoint, calibrate_handeye
 from host.calibration.intrinsics import calibrate_with_rejection
+from host.commissioning import targets_run
 from host.commissioning.head_run import HeadOutcome, head_rig_update
 from host.commissioning.intrinsics_run import Outcome, rig_update
 from host.commissioning.plan import IMAGE_TARGETS, board_plan
@@ -33,12 +34,23 @@ from host.demo.commissioning_phase import (
     BOARD,
     BOARD_SURVEY_SIGMA_MM,
     BOARD_SURVEY_SIGMA_RAD,
+    HOME_CLEARANCE_MM,
     STATION_SPACING_MM,
+    WORKPIECE_STATIONS_MM,
+    feature_points,
     place_board,
 )
 from host.demo.rigs import DemoRigs, paper_demo_rig
 from host.experiments.budget import inputs_from_rig, overlay_sigma, visible
-from host.geometry.transforms import FloatArray, R_to_rotvec, invert_T, make_T, rotvec_to_R
+from host.geometry.model import manipulator_wireframe
+from host.geometry.transforms import (
+    FloatArray,
+    R_to_rotvec,
+    invert_T,
+    make_T,
+    rotvec_to_R,
+    transform_points,
+)
 from host.rig import (
     Pose6,
     Provenance,
@@ -212,6 +224,48 @@ def board_relative_workpiece(c: Commissioned, rng: np.random.Generator) -> Commi
     )
     frame = Pose6(T_w_p, *_sigmas(cov_p), covariance=cov_p, provenance=prov)
     spec = with_updates(c.host, {"workpiece.frame": frame, "covariance": joint})
+    return dataclasses.replace(c, host=loads_rig(dumps_rig(spec)))
+
+
+def camera_surveyed_workpiece(c: Commissioned) -> Commissioned:
+    """The workpiece surveyed as `survey workpiece --method camera` does in the demo: targets on
+    the model's feature points, seen from the demo's stations (the trolley home_err short of
+    where the host commands it, head angles read with their noise) through the true lens,
+    found, triangulated through the commissioned rig and written with its cross terms."""
+    rigs = DemoRigs(paper_demo_rig(), c.truth, c.host, True)
+    features = feature_points(c.truth)
+    host_kin, host_cam = build_kinematics(c.host), build_camera(c.host)
+    true_kin, true_cam = build_kinematics(c.truth), build_camera(c.truth)
+    lo, hi = rigs.travel_mm()
+    behind_home = rigs.home_switch_mm() + HOME_CLEARANCE_MM
+    stations = [
+        min(max(max(rigs.start_s_mm() + d, behind_home), lo + 200.0), hi - 200.0)
+        for d in WORKPIECE_STATIONS_MM
+    ]
+    rough = transform_points(rigs.nominal.workpiece.frame.matrix, features)
+    lim = ((c.host.head.pan_min_rad, c.host.head.pan_max_rad),
+           (c.host.head.tilt_min_rad, c.host.head.tilt_max_rad))  # fmt: skip
+    views = targets_run.plan_views(host_kin, host_cam, rough, stations, lim)
+    sim = SyntheticCamera(true_cam, seed=c.seed)
+    rng = np.random.default_rng([c.seed, 0x7A6])
+    model = manipulator_wireframe()
+    T_w_p_true = c.truth.workpiece.frame.matrix
+    for v in views:
+        t = v.target
+        T_w_c = true_kin.T_w_c(t.s_mm - c.home_error_mm, t.pan_rad, t.tilt_rad)
+        img = sim.render_scene(T_w_c, model, T_w_p_true, targets_p=features).image
+        read = (t.pan_rad + rng.normal(0.0, c.head_sigma_rad),
+                t.tilt_rad + rng.normal(0.0, c.head_sigma_rad))  # fmt: skip
+        v.s_mm, v.head_rad = t.s_mm, read
+        uv, _ = host_cam.project(transform_points(host_kin.T_c_w(t.s_mm, *read), rough))
+        for k in v.wanted:
+            got = targets_run.find_target(img, uv[k])
+            if got is not None:
+                v.found[k] = got
+    out = targets_run.judge(views, host_kin, host_cam, features, c.host)
+    if not out.passed:
+        raise RuntimeError(f"seed {c.seed}: the camera survey failed: {out.reasons}")
+    spec = with_updates(c.host, targets_run.workpiece_update(out, c.host))
     return dataclasses.replace(c, host=loads_rig(dumps_rig(spec)))
 
 

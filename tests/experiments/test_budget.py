@@ -54,6 +54,7 @@ def test_first_order_overlay_sigma_matches_monte_carlo(s_mm: float) -> None:
         "arc_length",
         "head",
         "arc_radius",
+        "home",
     }
     total_sq = sum(v * v for v in shares.values())
     assert total_sq == pytest.approx(first.sigma_px**2, rel=1e-6)  # independent sources add
@@ -174,5 +175,6 @@ def test_inputs_from_rig_carry_the_joint_block_head_noise_and_stamp_errors() -> 
     assert S[SLICES["m_cr"], SLICES["track"]].max() == 0.0  # not solved together
     assert inp.sigma_head_rad == (4e-5, 4e-5)
     stamp = np.hypot(0.5e-3, spec.camera.latency.sigma / 1e3)
-    assert S[28, 28] == pytest.approx(spec.track.marks.sigma_mm**2 + (stamp * 100.0) ** 2)
+    assert S[28, 28] == pytest.approx((stamp * 100.0) ** 2)  # the encoder counts from the zero
     assert S[31, 31] == spec.track.arc_radius_sigma_mm**2
+    assert S[32, 32] == spec.track.home.sigma**2  # the zero's own, shared by what used it

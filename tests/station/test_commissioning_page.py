@@ -146,10 +146,11 @@ async def test_an_intrinsics_run_started_on_the_page_fills_the_bars_and_cancels(
         s_now = (await h.request("status"))["controller"]["position_mm"] + h.loop.home_s_mm
         pan, tilt = Rig().aim(s_now, [-300.0, -300.0, 300.0])
         await h.request("head", pan_rad=pan, tilt_rad=tilt)
-        sigma = (await h.request("status"))["service"]["overlay_sigma_px"]
+        sigma = (await h.budget_at(pan, tilt))["overlay_sigma_px"]
         assert sigma is not None
         await page.wait_for_function(
-            "document.querySelector('#status').textContent.includes('s old')", timeout=5_000
+            f"document.querySelector('#status').textContent.includes('{sigma:.1f} px')",
+            timeout=5_000,
         )
         row = await page.locator("#status tr", has_text="overlay σ").text_content()
         assert f"{sigma:.1f} px" in row, row

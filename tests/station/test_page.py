@@ -194,13 +194,23 @@ async def test_page_loads_offline_and_the_overlay_sits_on_the_projection(
     distance = float(np.linalg.norm(by_name["P1"] - by_name["P3"]))
     assert f"P1 → P3: {distance:.1f} mm" in await page.locator("#measure").text_content()
     await page.screenshot(path=str(ARTIFACTS / "measure.png"), full_page=True)
-    # The predicted overlay σ as the status op has it: a number with its age, or unknown.
-    sigma = (await ctl.request("status"))["service"]["overlay_sigma_px"]
-    row = await page.locator("#status tr", has_text="overlay σ").text_content()
+
+    # The predicted overlay σ as the status op has it (evaluated in the daemon's background, at
+    # the pose it names): a number with its age, or unknown.
+    async def budget() -> Any:
+        svc = (await ctl.request("status"))["service"]
+        at = svc["overlay_sigma_pose"]
+        here = at is not None and np.allclose([at["pan_rad"], at["tilt_rad"]], head, atol=1e-3)
+        return svc if here else None
+
+    sigma = (await until(budget, 10.0, "the error budget at this pose"))["overlay_sigma_px"]
+    rows = "[...document.querySelectorAll('#status tr')]"
+    row_js = f"{rows}.find((r) => r.textContent.includes('overlay σ'))"
     if sigma is None:
-        assert "unknown" in row, row
+        await page.wait_for_function(f"{row_js}.textContent.includes('unknown')")
     else:
-        assert f"{sigma:.1f} px" in row, row
+        await page.wait_for_function(f"{row_js}.textContent.includes('{sigma:.1f} px')")
+        row = await page.locator("#status tr", has_text="overlay σ").text_content()
         assert "s old" in row, row
     # The ghost is this page's choice: off, and the daemon draws it no more in its frames.
     await page.locator("#ghost").uncheck()

@@ -398,9 +398,10 @@ function onStatus(msg) {
   state.status = msg;
   const st = msg.status || {}; const ctrl = st.controller || {}; const link = msg.link || {};
   const svc = st.service || {}; const frames = msg.frames || {}; const stn = msg.station || {};
-  // The budget is evaluated at the controller's last known pose: its age is that pose's age.
+  // The budget is evaluated in the daemon's background at a pose: its age is that pose's age.
   const sigmaPx = typeof svc.overlay_sigma_px === "number" ? svc.overlay_sigma_px : null;
-  const poseAt = typeof ctrl.age_s === "number" ? msg.host_ms - ctrl.age_s * 1000 : null;
+  const sigmaAge = svc.overlay_sigma_age_s;
+  const poseAt = typeof sigmaAge === "number" ? msg.host_ms - sigmaAge * 1000 : null;
   state.sigma = { px: sigmaPx, at_host_ms: poseAt };
   const pose = st.pose; const head = ctrl.head_rad || [null, null];
   const ageMs = pose ? msg.host_ms - pose.t_ns / 1e6 : null;
