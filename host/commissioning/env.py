@@ -10,6 +10,7 @@ writes nothing. Reports go to `report_root`.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable, Mapping
@@ -139,6 +140,14 @@ class CommissioningEnv:
             "overlay_sigma_pose": {"position_mm": s_mm, "pan_rad": pan, "tilt_rad": tilt},
             "overlay_sigma_age_s": round(now - last.pose_at_s, 3),
         }
+
+    async def aclose(self) -> None:
+        """Stop waiting on a budget evaluation (its worker thread ends on its own)."""
+        task, self._budget_task = self._budget_task, None
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
 
     def _refresh(self, pose: tuple[float, float, float], pose_at_s: float) -> None:
         """Start an evaluation at `pose` unless one runs or the last one still holds."""

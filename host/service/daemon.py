@@ -290,6 +290,7 @@ class Daemon:
         self.phase = Phase.STOPPING
         self.notifier.stopping("stopping: halting the trolley")
         await self.commissioning.jobs.aclose()  # a run cut short writes nothing
+        await self.commissioning.aclose()
         for task in self._tasks:
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
