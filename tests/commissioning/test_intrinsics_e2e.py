@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -142,12 +143,7 @@ async def test_commissioning_sequence_recovers_the_chain_within_three_sigma(
         k: r["reasons"] for k, r in results.items()
     }
     head = results["calibrate_head"]
-    err = local_error(np.array(head["m_cr"]), h.rig.T_r_c)
-    sig = np.sqrt(np.diag(np.array(head["m_cr_covariance"])))
-    assert np.all(np.abs(err) < 3 * sig), (err, sig)
-    err_k = local_error(np.array(head["T_w_track"]), h.rig.track.T_w_track)
-    sig_k = np.sqrt(np.diag(np.array(head["T_w_track_covariance"])))
-    assert np.all(np.abs(err_k) < 3 * sig_k), (err_k, sig_k)
+    assert_head_within_3_sigma(head, h.rig)
     spec = load_rig(h.rig_path)
     assert spec.head.m_cr.provenance.method.startswith("calibrate head")
     assert results["calibrate_check"]["rms_px"] < 1.0
@@ -186,12 +182,7 @@ async def test_head_solves_the_intrinsics_views_and_moves_nothing(tmp_path: Path
     assert head["views_from"] == "intrinsics run 1"
     assert head["views"]["ok"] == lens["views"]["ok"]
     assert (after["position_mm"], after["head_rad"]) == (before["position_mm"], before["head_rad"])
-    err = local_error(np.array(head["m_cr"]), h.rig.T_r_c)
-    sig = np.sqrt(np.diag(np.array(head["m_cr_covariance"])))
-    assert np.all(np.abs(err) < 3 * sig), (err, sig)
-    err_k = local_error(np.array(head["T_w_track"]), h.rig.track.T_w_track)
-    sig_k = np.sqrt(np.diag(np.array(head["T_w_track_covariance"])))
-    assert np.all(np.abs(err_k) < 3 * sig_k), (err_k, sig_k)
+    assert_head_within_3_sigma(head, h.rig)
     assert filmed["views_from"] == "filmed"
 
 
@@ -244,3 +235,11 @@ async def test_survey_home_against_the_end_wall(tmp_path: Path) -> None:
     # the true home (the harness's) within 3σ; the wall itself is 0.4 mm off its survey
     assert abs(result["home_mm"] - h.loop.home_s_mm) < 3 * result["sigma_mm"]
     assert load_rig(h.rig_path).track.home.value == pytest.approx(result["home_mm"])
+
+
+def assert_head_within_3_sigma(head: dict[str, Any], rig: Rig) -> None:
+    """The head run's M_cr and track placement, each within 3σ of the true rig's."""
+    for key, true_T in (("m_cr", rig.T_r_c), ("T_w_track", rig.track.T_w_track)):
+        err = local_error(np.array(head[key]), true_T)
+        sig = np.sqrt(np.diag(np.array(head[f"{key}_covariance"])))
+        assert np.all(np.abs(err) < 3 * sig), (key, err, sig)
