@@ -194,3 +194,47 @@ async def test_an_intrinsics_run_from_the_page_ends_with_its_verdict_and_report(
         await report.screenshot(path=str(ARTIFACTS / "commissioning_report.png"), full_page=True)
         dump(ARTIFACTS / "commissioning_done.json", result)
         await page.close()
+
+
+async def test_a_camera_workpiece_survey_starts_from_the_page_with_the_sidecars_points(
+    tmp_path: Path, browser: Any
+) -> None:
+    """The survey form offers both methods and fills the model points from the parts sidecar
+    the page shows; a malformed field is refused on the page with its label, nothing sent."""
+    async with station_daemon(tmp_path) as (h, base):
+        before = h.rig_path.read_text()
+        page = await open_page(browser, base, OPERATOR_TOKEN)
+        await page.select_option("#run-op", "survey_workpiece")
+        methods = await page.locator('#run-form [data-key="method"] option').all_text_contents()
+        assert methods == ["rangefinder", "camera"]
+        sidecar = await page.evaluate("orbitar.info.parts.feature_points.map((p) => p.position_mm)")
+        assert len(sidecar) >= 3  # the default model's P1..P5
+        points = page.locator('#run-form [data-key="model_points_mm"]')
+        assert await points.input_value() == await page.evaluate(f"JSON.stringify({sidecar})")
+        await page.select_option('#run-form [data-key="method"]', "camera")
+        await page.fill('#run-form [data-key="stations_mm"]', "300, x")
+        await page.locator("#run-start").click()
+        await page.wait_for_function("document.querySelector('#toast').textContent.length > 0")
+        toast = await page.locator("#toast").text_content()
+        assert "run not started" in toast, toast
+        assert "camera: stations" in toast, toast
+        assert (await h.request("commissioning_status"))["state"] == "none"
+        here = (await h.request("status"))["controller"]["position_mm"] + h.loop.home_s_mm
+        await page.fill('#run-form [data-key="stations_mm"]', f"{here:.0f}")
+        await page.locator("#run-start").click()
+        # The harness's hall has a board but no targets on the workpiece: the survey plans its
+        # views from the points the page sent, films them, finds no target and fails, writing
+        # nothing; the page shows the verdict and why.
+        await page.wait_for_function("orbitar.run && orbitar.run.state === 'done'", timeout=30_000)
+        status = await h.request("commissioning_status")
+        assert status["kind"] == "workpiece", status
+        assert status["progress"]["planned"] >= 1, status
+        result = status["result"]
+        assert not result["passed"], result
+        assert "FAIL" in await page.locator("#run-verdict").text_content()
+        reasons = await page.locator("#run-reasons").text_content()
+        assert result["reasons"], result
+        assert result["reasons"][0] in reasons, (reasons, result)
+        await page.screenshot(path=str(ARTIFACTS / "survey_camera_failed.png"), full_page=True)
+        assert h.rig_path.read_text() == before
+        await page.close()

@@ -561,13 +561,29 @@ const RUN_FORMS = {
   calibrate_latency: { title: "Frame latency", fields: [...POSE_FIELDS.slice(0, 1),
     ["station_mm", "number", "station facing the board, mm"], ["span_mm", "number", "pass length, mm"],
     ["passes", "int", "passes"], ...BOARD_FIELDS, SPEED, WRITE] },
-  survey_workpiece: { title: "Workpiece survey (rangefinder)", fields: [
-    ["aims", "json", "aims [[s_mm, pan_rad, tilt_rad], …]"], ["model_points_mm", "json", "model points [[x, y, z], …]"],
-    ["samples", "int", "readings per point"], WRITE] },
+  survey_workpiece: { title: "Workpiece survey (rangefinder or camera targets)", fields: [
+    ["method", "choice", "method", ["rangefinder", "camera"]],
+    ["model_points_mm", "json", "model points [[x, y, z], …] (the sidecar's)", sidecarPoints],
+    ["aims", "json", "rangefinder: aims [[s_mm, pan_rad, tilt_rad], …]"],
+    ["samples", "int", "rangefinder: readings per point"],
+    ["stations_mm", "list", "camera: stations s, mm (empty: here)"], WRITE] },
+  survey_marks: { title: "Reference marks (rangefinder)", fields: [
+    ["marks", "list", "marks to survey, indices (empty: all)"], ["samples", "int", "readings per mark"],
+    ["aim_rad", "json", "aim [pan_rad, tilt_rad] (empty: planned)"],
+    ["cross_speed_mm_s", "number", "speed across a mark, mm/s"], ["max_sigma_mm", "number", "pass if σ ≤, mm"], WRITE] },
+  calibrate_rangefinder: { title: "Rangefinder mount", fields: [
+    STATIONS, ["pans", "int", "pans per station"], ["aims", "json", "or aims [[s_mm, pan_rad, tilt_rad], …]"],
+    ["samples", "int", "readings per pose"], ["max_rms_mm", "number", "pass if RMS ≤, mm"], SPEED, WRITE] },
   survey_home: { title: "Home survey (rangefinder)", fields: [
     ["pan_rad", "deg", "pan at an end wall, °"], ["tilt_rad", "deg", "tilt, °"], ["samples", "int", "readings"], WRITE] },
 };
 const COVERAGE_KEYS = ["x", "y", "size", "skew"];
+
+// The parts sidecar's feature points (model frame), where a survey's targets are stuck.
+function sidecarPoints() {
+  const pts = ((state.info && state.info.parts) || {}).feature_points || [];
+  return pts.length ? JSON.stringify(pts.map((p) => p.position_mm)) : "";
+}
 
 function setupRuns(runs) {
   const select = $("run-op"); const keep = select.value; select.replaceChildren();
@@ -589,9 +605,13 @@ function buildRunForm() {
   for (const [key, kind, label, dflt] of fields) {
     const row = document.createElement("label"); const span = document.createElement("span");
     span.textContent = label;
-    const input = document.createElement(kind === "json" || kind === "args" ? "textarea" : "input");
+    const tag = kind === "json" || kind === "args" ? "textarea" : kind === "choice" ? "select" : "input";
+    const input = document.createElement(tag);
     input.dataset.key = key; input.dataset.kind = kind;
-    if (kind === "bool") { input.type = "checkbox"; input.checked = Boolean(dflt); } else { input.type = "text"; }
+    if (kind === "choice") {
+      for (const value of dflt) { const o = document.createElement("option"); o.value = o.textContent = value; input.append(o); }
+    } else if (kind === "bool") { input.type = "checkbox"; input.checked = Boolean(dflt); } else if (tag === "input") { input.type = "text"; }
+    if (typeof dflt === "function") input.value = dflt();
     if (kind === "vec3") input.placeholder = "x y z";
     row.append(span, input); form.append(row);
   }
@@ -607,6 +627,7 @@ function runArgs() {
     if (kind === "bool") value = input.checked;
     else if (!text) continue;
     else if (kind === "args") { Object.assign(args, JSON.parse(text)); continue; }
+    else if (kind === "choice") value = text;
     else if (kind === "json") value = JSON.parse(text);
     else if (kind === "vec3" || kind === "list") value = text.split(/[\s,;]+/).filter(Boolean).map(Number);
     else if (kind === "deg") value = (Number(text) * Math.PI) / 180;
