@@ -199,7 +199,8 @@ async def _experiments(
         ranges=ranges,
         scene=scene,
         range_noise_mm=rf.noise_mm,
-        predicted_px=_budget(rigs),
+        # without tolerances the host computes with the truth, not with the file's σ: no budget
+        predicted_px=_budget(rigs) if rigs.tolerances else None,
     )
     clock = _frame_clock(rigs, seed)
     source = SimCameraSource(

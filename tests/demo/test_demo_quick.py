@@ -117,6 +117,10 @@ def test_report_files_exist_and_parse(demo: tuple[dict[str, Any], Path]) -> None
     assert len(data["propagation"]["rows"]) == 4
     for row in data["propagation"]["rows"]:
         assert row["mc_agreement"] < 0.05
+    # Handed the truth, the host's overlay owes nothing to the file's σ: no prediction is printed
+    # beside it (it would be the nominal rig's, tens of px, against ~0.1 px measured).
+    assert results["mode"]["tolerances"] is False
+    assert all("predicted_sigma_px" not in row for row in data["static"].values())
 
 
 def test_skip_summary_counts_the_frames_until_the_overlay_is_back() -> None:
