@@ -11,19 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from firmware.config import (
-    CHAIN_PITCH_UM,
-    ENCODER_COUNTS_PER_REV,
-    FW_VERSION,
-    MAX_FRAME_BYTES,
-    MCU_CLOCK_HZ,
-    RX_WINDOW,
-    SPROCKET_TEETH,
-    STEPS_PER_REV,
-    accel_to_msteps_per_tick,
-    speed_to_msteps,
-    um_to_steps,
-)
+from firmware.config import FW_VERSION, MAX_FRAME_BYTES, MCU_CLOCK_HZ, RX_WINDOW
 from protocol import (
     PARAMS_BY_ID,
     PROTOCOL_VERSION,
@@ -190,11 +178,6 @@ def _finish(
     fw.tx.send(reply, reply=True)
 
 
-def speed(fw_speed_um_s: int) -> int:
-    """µm/s → profile velocity units."""
-    return speed_to_msteps(fw_speed_um_s)
-
-
 def _execute(fw: Firmware, seq: int, msg_id: int, raw: bytes, acked: bool) -> Reply | None:
     """Decode, validate and dispatch; None when nothing is to be answered."""
     checks = _CHECKS.get(msg_id)
@@ -233,10 +216,10 @@ def _hello(fw: Firmware, seq: int, msg: object) -> Reply:
         SCHEMA_HASH,
         FW_VERSION,
         fw.boot_id,
-        ENCODER_COUNTS_PER_REV,
-        STEPS_PER_REV,
-        SPROCKET_TEETH,
-        CHAIN_PITCH_UM,
+        fw.mech.encoder_counts_per_rev,
+        fw.mech.steps_per_rev,
+        fw.mech.sprocket_teeth,
+        fw.mech.chain_pitch_um,
         MCU_CLOCK_HZ,
         MAX_FRAME_BYTES,
         RX_WINDOW,
@@ -294,7 +277,7 @@ def _move_to(fw: Firmware, seq: int, msg: object) -> Reply:
     hi = fw.params.get(ParamId.SOFT_LIMIT_MAX_UM)
     if not lo <= msg.position_um <= hi:
         return _nak(fw, seq, NakCode.BEYOND_LIMIT)
-    target = um_to_steps(msg.position_um)
+    target = fw.mech.um_to_steps(msg.position_um)
     if _toward_closed_limit(fw, target - fw.profile.steps):
         return _nak(fw, seq, NakCode.BEYOND_LIMIT)
     vmax = _capped_speed(fw, msg.speed_um_s)
@@ -402,12 +385,12 @@ def _stream_set(fw: Firmware, seq: int, msg: object) -> Reply:
 
 def _capped_speed(fw: Firmware, um_s: int) -> int:
     """Requested speed, never above MAX_SPEED_UM_S, in profile units."""
-    return speed_to_msteps(min(um_s, fw.params.get(ParamId.MAX_SPEED_UM_S)))
+    return fw.mech.speed_to_msteps(min(um_s, fw.params.get(ParamId.MAX_SPEED_UM_S)))
 
 
 def _capped_accel(fw: Firmware, um_s2: int) -> int:
     """Requested acceleration, never above MAX_ACCEL_UM_S2, in profile units."""
-    return accel_to_msteps_per_tick(min(um_s2, fw.params.get(ParamId.MAX_ACCEL_UM_S2)))
+    return fw.mech.accel_to_msteps_per_tick(min(um_s2, fw.params.get(ParamId.MAX_ACCEL_UM_S2)))
 
 
 def _toward_closed_limit(fw: Firmware, direction: int) -> bool:

@@ -1,10 +1,12 @@
 """Build-time constants of the controller and the integer unit conversions of the control path.
 
-The mechanics (encoder, microstepping, sprocket, chain) are reported to the host in IDENTIFY;
-the conversions below are exact rational arithmetic on ints, as the C does them.
+The mechanics (encoder, microstepping, sprocket, chain: `Mechanics`, the reference build's
+values below) are reported to the host in IDENTIFY.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from protocol.enums import Capability
 from protocol.schema import MAX_WIRE_FRAME
@@ -21,8 +23,7 @@ FULL_STEPS_PER_REV = 200
 MICROSTEPS = 16
 STEPS_PER_REV = FULL_STEPS_PER_REV * MICROSTEPS
 SPROCKET_TEETH = 20
-CHAIN_PITCH_UM = 12_700  # ISO 08B
-UM_PER_REV = SPROCKET_TEETH * CHAIN_PITCH_UM  # 254 000 µm of chain per sprocket turn
+CHAIN_PITCH_UM = 12_700  # ISO 08B: 254 000 µm of chain per sprocket turn
 
 MAX_FRAME_BYTES = MAX_WIRE_FRAME  # the protocol's limit: one XBee unicast payload
 RX_WINDOW = 8
@@ -40,45 +41,61 @@ SUB_PER_STEP = 1_000_000
 MSTEP_PER_STEP = 1_000
 
 
-def um_to_steps(um: int) -> int:
-    """Track µm → microsteps, rounded to nearest."""
-    return _div_round(um * STEPS_PER_REV, UM_PER_REV)
+@dataclass(frozen=True)
+class Mechanics:
+    """What the firmware is built for: encoder, microstepping, sprocket and chain.
+
+    The C takes these as build-time constants (one build per drive); the mirror takes them per
+    instance so that the simulator can build it for the plant it drives. Reported in IDENTIFY.
+    The conversions are exact rational arithmetic on ints, as the C does them.
+    """
+
+    encoder_counts_per_rev: int = ENCODER_COUNTS_PER_REV
+    steps_per_rev: int = STEPS_PER_REV
+    sprocket_teeth: int = SPROCKET_TEETH
+    chain_pitch_um: int = CHAIN_PITCH_UM
+
+    def __post_init__(self) -> None:
+        fields = (self.encoder_counts_per_rev, self.steps_per_rev)
+        if min(*fields, self.sprocket_teeth, self.chain_pitch_um) < 1:
+            raise ValueError(f"mechanics must be positive: {self}")
+
+    @property
+    def um_per_rev(self) -> int:
+        """Chain travel per sprocket turn, µm."""
+        return self.sprocket_teeth * self.chain_pitch_um
+
+    def um_to_steps(self, um: int) -> int:
+        """Track µm → microsteps, rounded to nearest."""
+        return _div_round(um * self.steps_per_rev, self.um_per_rev)
+
+    def steps_to_um(self, steps: int) -> int:
+        """Microsteps → track µm, rounded to nearest."""
+        return _div_round(steps * self.um_per_rev, self.steps_per_rev)
+
+    def counts_to_um(self, counts: int) -> int:
+        """Encoder counts → track µm, rounded to nearest."""
+        return _div_round(counts * self.um_per_rev, self.encoder_counts_per_rev)
+
+    def um_to_counts(self, um: int) -> int:
+        """Track µm → encoder counts, rounded to nearest."""
+        return _div_round(um * self.encoder_counts_per_rev, self.um_per_rev)
+
+    def counts_to_steps(self, counts: int) -> int:
+        """Encoder counts → microsteps, rounded to nearest."""
+        return _div_round(counts * self.steps_per_rev, self.encoder_counts_per_rev)
+
+    def speed_to_msteps(self, um_s: int) -> int:
+        """µm/s → milli-steps per second (the profile's velocity unit), at least 1."""
+        return max(1, _div_round(um_s * self.steps_per_rev * MSTEP_PER_STEP, self.um_per_rev))
+
+    def accel_to_msteps_per_tick(self, um_s2: int) -> int:
+        """µm/s² → velocity change per tick in milli-steps/s, at least 1."""
+        per_s = um_s2 * self.steps_per_rev * MSTEP_PER_STEP
+        return max(1, _div_round(per_s, self.um_per_rev * TICK_HZ))
 
 
-def steps_to_um(steps: int) -> int:
-    """Microsteps → track µm, rounded to nearest."""
-    return _div_round(steps * UM_PER_REV, STEPS_PER_REV)
-
-
-def counts_to_um(counts: int) -> int:
-    """Encoder counts → track µm, rounded to nearest."""
-    return _div_round(counts * UM_PER_REV, ENCODER_COUNTS_PER_REV)
-
-
-def um_to_counts(um: int) -> int:
-    """Track µm → encoder counts, rounded to nearest."""
-    return _div_round(um * ENCODER_COUNTS_PER_REV, UM_PER_REV)
-
-
-def steps_to_counts(steps: int) -> int:
-    """Microsteps → encoder counts, rounded to nearest."""
-    return _div_round(steps * ENCODER_COUNTS_PER_REV, STEPS_PER_REV)
-
-
-def counts_to_steps(counts: int) -> int:
-    """Encoder counts → microsteps, rounded to nearest."""
-    return _div_round(counts * STEPS_PER_REV, ENCODER_COUNTS_PER_REV)
-
-
-def speed_to_msteps(um_s: int) -> int:
-    """µm/s → milli-steps per second (the profile's velocity unit), at least 1."""
-    return max(1, _div_round(um_s * STEPS_PER_REV * MSTEP_PER_STEP, UM_PER_REV))
-
-
-def accel_to_msteps_per_tick(um_s2: int) -> int:
-    """µm/s² → velocity change per tick in milli-steps/s, at least 1."""
-    per_s = um_s2 * STEPS_PER_REV * MSTEP_PER_STEP
-    return max(1, _div_round(per_s, UM_PER_REV * TICK_HZ))
+MECHANICS = Mechanics()  # the reference build: the paper's drive
 
 
 def _div_round(num: int, den: int) -> int:

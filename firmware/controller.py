@@ -14,17 +14,11 @@ from firmware import commands
 from firmware.batching import Batcher, Sample
 from firmware.config import (
     CAPABILITIES,
-    ENCODER_COUNTS_PER_REV,
-    STEPS_PER_REV,
+    MECHANICS,
     SUB_PER_STEP,
     TICK_HZ,
     VELOCITY_FILTER_SHIFT,
-    accel_to_msteps_per_tick,
-    counts_to_steps,
-    counts_to_um,
-    steps_to_um,
-    um_to_counts,
-    um_to_steps,
+    Mechanics,
 )
 from firmware.hal import Hal
 from firmware.link import HoldBuffer, LinkCounters, ReplyCache, RxFramer, TxQueue
@@ -109,8 +103,11 @@ class Firmware:
     stream_acc: list[int]
     active_streams: list[int]
 
-    def __init__(self, hal: Hal, capabilities: int = CAPABILITIES) -> None:
+    def __init__(
+        self, hal: Hal, capabilities: int = CAPABILITIES, mechanics: Mechanics = MECHANICS
+    ) -> None:
         self.hal = hal
+        self.mech = mechanics  # the drive this build is for (the C's build-time constants)
         self.capabilities = capabilities  # offered in IDENTIFY (0: a controller without batching)
         self.batching = False  # both sides offered BATCHED_TELEMETRY in this session
         self.batchers = {s: Batcher() for s in _BATCHED_STREAMS}
@@ -171,7 +168,7 @@ class Firmware:
     @property
     def position_um(self) -> int:
         """Encoder position from home, µm."""
-        return counts_to_um(self.enc_pos)
+        return self.mech.counts_to_um(self.enc_pos)
 
     @property
     def inputs(self) -> int:
@@ -206,7 +203,7 @@ class Firmware:
         self.faults = 0
         self.hal.drive_enable(True)
         if not self.profile.moving:
-            self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+            self.profile.shift(self.mech.counts_to_steps(self.enc_pos) - self.profile.steps)
             self.state = State.IDLE
         else:
             self.state = State.MOVING
@@ -221,10 +218,10 @@ class Firmware:
         if not self.homed:
             self.profile.set_bounds(None, None)
             return
-        lo = um_to_steps(self.params.get(ParamId.SOFT_LIMIT_MIN_UM))
-        hi = um_to_steps(self.params.get(ParamId.SOFT_LIMIT_MAX_UM))
-        lo += steps_to_um(lo) < self.params.get(ParamId.SOFT_LIMIT_MIN_UM)
-        hi -= steps_to_um(hi) > self.params.get(ParamId.SOFT_LIMIT_MAX_UM)
+        lo = self.mech.um_to_steps(self.params.get(ParamId.SOFT_LIMIT_MIN_UM))
+        hi = self.mech.um_to_steps(self.params.get(ParamId.SOFT_LIMIT_MAX_UM))
+        lo += self.mech.steps_to_um(lo) < self.params.get(ParamId.SOFT_LIMIT_MIN_UM)
+        hi -= self.mech.steps_to_um(hi) > self.params.get(ParamId.SOFT_LIMIT_MAX_UM)
         self.profile.set_bounds(lo, hi)
 
     def start_homing(self, speed_um_s: int) -> None:
@@ -242,18 +239,20 @@ class Firmware:
         back_off = on_switch or behind
         self.homing_phase = HomingPhase.BACKOFF if back_off else HomingPhase.SEEK
         sign = 1 if back_off else -1
-        self.profile.jog(sign * commands.speed(self.homing_speed), self.max_accel, self.stop_decel)
+        self.profile.jog(
+            sign * self.mech.speed_to_msteps(self.homing_speed), self.max_accel, self.stop_decel
+        )
         self.state = State.HOMING
 
     @property
     def stop_decel(self) -> int:
         """STOP_DECEL_UM_S2 in profile units."""
-        return accel_to_msteps_per_tick(self.params.get(ParamId.STOP_DECEL_UM_S2))
+        return self.mech.accel_to_msteps_per_tick(self.params.get(ParamId.STOP_DECEL_UM_S2))
 
     @property
     def max_accel(self) -> int:
         """MAX_ACCEL_UM_S2 in profile units."""
-        return accel_to_msteps_per_tick(self.params.get(ParamId.MAX_ACCEL_UM_S2))
+        return self.mech.accel_to_msteps_per_tick(self.params.get(ParamId.MAX_ACCEL_UM_S2))
 
     def start_session(self, host_capabilities: int) -> None:
         """A HELLO opened a session: samples still waiting go out, then batch only if agreed."""
@@ -374,10 +373,13 @@ class Firmware:
         if (vel > 0 and sw & _IN_LIMIT_MAX) or (vel < 0 and sw & _IN_LIMIT_MIN):
             self.latch_fault(Fault.HARD_LIMIT, halt=True)
         if self.state is not State.ESTOP:
-            # Compared in units of 1/STEPS_PER_REV count, so no division (and no rounding) is needed
+            # Compared in units of 1/steps_per_rev count, so no division (and no rounding) is needed
             # whatever the microstepping and the encoder resolution.
-            err = self.profile.steps * ENCODER_COUNTS_PER_REV - self.enc_pos * STEPS_PER_REV
-            limit = self.params.values[ParamId.FOLLOWING_ERROR_COUNTS] * STEPS_PER_REV
+            mech = self.mech
+            err = (
+                self.profile.steps * mech.encoder_counts_per_rev - self.enc_pos * mech.steps_per_rev
+            )
+            limit = self.params.values[ParamId.FOLLOWING_ERROR_COUNTS] * mech.steps_per_rev
             if (err > limit or -err > limit) and not self.faults & _F_FOLLOWING:
                 self.latch_fault(Fault.FOLLOWING_ERROR, halt=True)
         if self.watchdog_armed:
@@ -395,14 +397,14 @@ class Firmware:
         if phase is HomingPhase.RETURN:
             return
         travel = abs(self.profile.steps - self.homing_origin)
-        if travel > um_to_steps(self.params.get(ParamId.HOMING_TRAVEL_UM)):
+        if travel > self.mech.um_to_steps(self.params.get(ParamId.HOMING_TRAVEL_UM)):
             self.latch_fault(Fault.HOMING_FAILED, halt=False)
             return
         if phase is HomingPhase.BACKOFF:
             past = self.switch_counts is None or self.enc_pos > self.switch_counts
             if not self.switches & _IN_HOME and past:
                 self.homing_phase = HomingPhase.SEEK
-                seek = -commands.speed(self.homing_speed)
+                seek = -self.mech.speed_to_msteps(self.homing_speed)
                 self.profile.jog(seek, self.max_accel, self.stop_decel)
         elif phase is HomingPhase.SEEK:
             if self.switches & _IN_HOME:
@@ -414,16 +416,16 @@ class Firmware:
     def _latch_home(self, index_pos: int) -> None:
         """Make the index pulse's position HOME_OFFSET_UM and return onto it."""
         offset_um = self.params.get(ParamId.HOME_OFFSET_UM)
-        delta = um_to_counts(offset_um) - index_pos
+        delta = self.mech.um_to_counts(offset_um) - index_pos
         self.enc_pos += delta
-        self.profile.shift(counts_to_steps(self.enc_pos) - self.profile.steps)
+        self.profile.shift(self.mech.counts_to_steps(self.enc_pos) - self.profile.steps)
         if self.switch_counts is not None:
             self.switch_counts += delta  # into the new frame, for the next HOME's back-off
         self.set_homed(True)
         self.homing_phase = HomingPhase.RETURN
         self.profile.move_to(
-            um_to_steps(offset_um),
-            commands.speed(self.homing_speed),
+            self.mech.um_to_steps(offset_um),
+            self.mech.speed_to_msteps(self.homing_speed),
             self.max_accel,
             self.stop_decel,
         )
@@ -440,7 +442,7 @@ class Firmware:
     def _status(self) -> Status:
         """STATUS now; remembers what was reported so a change is noticed."""
         self._reported = (self.state, self.faults)
-        target = steps_to_um(self.profile.target_sub // SUB_PER_STEP)
+        target = self.mech.steps_to_um(self.profile.target_sub // SUB_PER_STEP)
         return Status(
             self.now_us,
             self.state,

@@ -52,7 +52,11 @@ def scenario_for_rig(
     )
     return Scenario(
         seed=seed,
-        chain=ChainConfig(elongation=elongation),
+        chain=ChainConfig(
+            sprocket_teeth=truth.track.chain.sprocket_teeth,
+            pitch_mm=truth.track.chain.pitch_mm,
+            elongation=elongation,
+        ),
         track=track,
         rangefinder=rangefinder,
     )

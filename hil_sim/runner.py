@@ -39,7 +39,7 @@ class Simulation:
         rng = random.Random(sc.seed)
         self.plant = Plant(sc, random.Random(rng.getrandbits(64)))
         self.board = SimBoard(self.plant, sc, random.Random(rng.getrandbits(64)))
-        self.firmware = Firmware(self.board)
+        self.firmware = Firmware(self.board, mechanics=sc.firmware_build())
         self.ticks = 0
         # The tick timer runs off the MCU crystal: a fast crystal makes ticks shorter in true time.
         self.dt_s = TICK_US * 1e-6 / (1.0 + sc.clock.drift_ppm * 1e-6)

@@ -15,6 +15,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from firmware.config import Mechanics
+
 if TYPE_CHECKING:
     from host.geometry.track import Track
 
@@ -118,3 +120,13 @@ class Scenario:
     rangefinder: RangefinderConfig = field(default_factory=RangefinderConfig)
     clock: ClockConfig = field(default_factory=ClockConfig)
     flash_path: str | None = None  # parameter sector in a file; None keeps it in memory
+
+    def firmware_build(self) -> Mechanics:
+        """The firmware built for this drive (its nominal chain pitch: the stretch it cannot
+        know); IDENTIFY reports it to the host as a real controller's build does."""
+        return Mechanics(
+            encoder_counts_per_rev=4 * self.encoder.lines,
+            steps_per_rev=self.stepper.full_steps_per_rev * self.stepper.microsteps,
+            sprocket_teeth=self.chain.sprocket_teeth,
+            chain_pitch_um=round(self.chain.pitch_mm * 1000.0),
+        )

@@ -155,6 +155,8 @@ def status_text(status: Mapping[str, Any], link: Mapping[str, Any], now_ns: int)
         f"{service.get('clients', 0)} clients",
         f"link error: {service['link_error']}" if service.get("link_error") else "",
     )
+    if service.get("drive_problem"):
+        out += line("drive", f"controller built for another chain: {service['drive_problem']}")
     out += link_text(bool(status.get("link_up")), link)
     out += controller_text(controller, link)
     out += head_text(controller)

@@ -9,7 +9,8 @@ Public API (used by the daemon, `orbitar sim --rig`, the demo and the commission
 - `covariance_over(spec, names)`, `joint_covariance(blocks, cross, provenance)`,
   `with_block(spec, name, cov, cross, provenance)`: blocks solved or measured together and the
   `[covariance]` block that keeps their cross terms.
-- `build_kinematics`, `build_camera`, `build_scene`, `build_track`, `workpiece_pose`.
+- `build_kinematics`, `build_camera`, `build_scene`, `build_track`, `workpiece_pose`;
+  `chain_mismatch` (the rig's chain against a controller's build).
 The schema's dataclasses and constants are re-exported from `host.rig.schema.__all__`.
 """
 
@@ -19,6 +20,7 @@ from host.rig.build import (
     build_kinematics,
     build_scene,
     build_track,
+    chain_mismatch,
     travel_limits_mm,
     workpiece_pose,
 )
@@ -36,6 +38,7 @@ __all__ = [
     "build_kinematics",
     "build_scene",
     "build_track",
+    "chain_mismatch",
     "covariance_over",
     "current_rig",
     "dumps_rig",

@@ -16,7 +16,7 @@ from host.geometry.head import Rig, orthonormalize_T
 from host.geometry.rangefinder import RangeScene, Surface
 from host.geometry.track import Track
 from host.geometry.transforms import FloatArray
-from host.rig.schema import RigSpec, TrackSpec
+from host.rig.schema import ChainSpec, RigSpec, TrackSpec
 
 OPEN_TRACK_MARGIN_MM = 100.0  # an open track's limit switches sit this far inside its ends
 LOOP_TRAVEL_BEFORE_MM = 400.0  # a closed loop's cable carrier: travel before s = 0 ...
@@ -73,3 +73,13 @@ def travel_limits_mm(track: TrackSpec) -> tuple[float, float]:
     lo = track.travel_min_mm if track.travel_min_mm is not None else lo_default
     hi = track.travel_max_mm if track.travel_max_mm is not None else hi_default
     return lo, hi
+
+
+def chain_mismatch(chain: ChainSpec, teeth: int, pitch_mm: float) -> str:
+    """How a controller built for `teeth` × `pitch_mm` differs from the rig's chain ("" if not)."""
+    problems = []
+    if teeth != chain.sprocket_teeth:
+        problems.append(f"sprocket {teeth} teeth, the rig file's {chain.sprocket_teeth}")
+    if abs(pitch_mm - chain.pitch_mm) > 1e-3:
+        problems.append(f"pitch {pitch_mm:g} mm, the rig file's {chain.pitch_mm:g} mm")
+    return "; ".join(problems)

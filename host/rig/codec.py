@@ -28,6 +28,7 @@ from host.rig.schema import (
     INTRINSIC_KEYS,
     SEGMENT_KINDS,
     CameraSpec,
+    ChainSpec,
     HallSpec,
     HeadSpec,
     Intrinsics,
@@ -239,7 +240,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         "track",
         (
             "segments", "placement", "closed", "home", "marks", "travel_min_mm", "travel_max_mm",
-            "arc_radius_sigma_mm",
+            "arc_radius_sigma_mm", "chain",
         ),
     )  # fmt: skip
     segments = default.segments
@@ -262,9 +263,18 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         t.optional("travel_min_mm", -1e6, 1e6),
         t.optional("travel_max_mm", -1e6, 1e7),
         t.number("arc_radius_sigma_mm", default.arc_radius_sigma_mm, 0.0, 1e3),
+        _chain(t.sub("chain", ("sprocket_teeth", "pitch_mm")), default.chain),
     )
     _track_checks(spec, r.problems)
     return spec
+
+
+def _chain(c: _Reader, default: ChainSpec) -> ChainSpec:
+    # teeth: the smallest roller-chain sprockets have 6-9; pitch: ISO 04 (6 mm) to 32B (51 mm)
+    return ChainSpec(
+        c.integer("sprocket_teeth", default.sprocket_teeth, 6, 255),
+        c.number("pitch_mm", default.pitch_mm, 3.0, 100.0),
+    )
 
 
 def _track_checks(spec: TrackSpec, problems: list[str]) -> None:
@@ -478,6 +488,7 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
         },
     }
     track["arc_radius_sigma_mm"] = t.arc_radius_sigma_mm
+    track["chain"] = {"sprocket_teeth": t.chain.sprocket_teeth, "pitch_mm": t.chain.pitch_mm}
     for key in ("closed", "travel_min_mm", "travel_max_mm"):
         if getattr(t, key) is not None:
             track[key] = getattr(t, key)

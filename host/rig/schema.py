@@ -28,6 +28,7 @@ __all__ = [
     "COVARIANCE_BLOCKS",
     "INTRINSIC_KEYS",
     "CameraSpec",
+    "ChainSpec",
     "HallSpec",
     "HeadSpec",
     "Intrinsics",
@@ -240,6 +241,16 @@ class Marks:
 
 
 @dataclass(frozen=True)
+class ChainSpec:
+    """The drive's sprocket and roller chain as drawn; the controller's firmware is built for
+    them and says so in IDENTIFY (the daemon checks the two agree). Its stretch is the chain
+    filter's to learn."""
+
+    sprocket_teeth: int = 20
+    pitch_mm: float = 12.7  # ISO 08B
+
+
+@dataclass(frozen=True)
 class TrackSpec:
     """The chain track: its segments, where it sits in the world, home switch, marks, travel."""
 
@@ -255,6 +266,7 @@ class TrackSpec:
     # σ of the arcs' radii against the drawing, one error shared by all arcs (bent on one jig);
     # no calibration measures it: it moves the track beyond the arcs away from the placement
     arc_radius_sigma_mm: float = NOMINAL_SIGMA_ARC_RADIUS_MM
+    chain: ChainSpec = field(default_factory=ChainSpec)
 
     @property
     def length_mm(self) -> float:

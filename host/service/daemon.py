@@ -101,6 +101,7 @@ class Daemon:
         self.latest_pose: PoseSample | None = None
         self.ready_sent = False
         self.link_was_up = False
+        self.drive_problem = ""  # the controller's chain is not the rig file's (empty: agrees)
         self._logged_cause = ""  # the link-down cause last logged
         self.output_errors = 0
         self.exit_code = 0
@@ -194,6 +195,7 @@ class Daemon:
             "pose_age_s": pose_age_s,
             "clients": self.server.client_count,
             "link_error": self.controller.link_error,
+            "drive_problem": self.drive_problem,  # the rig's chain against the controller's
             **self.outputs.stats(),
             "bus": self.bus.stats() if self.bus is not None else None,
             "recording": self.recorder.status() if self.recorder else {"state": "off"},
@@ -338,6 +340,7 @@ class Daemon:
         if up:
             self.link_was_up = True
             log.info("controller link up")
+            self._check_drive()
             if not self.ready_sent:
                 self.ready_sent = True
                 self.notifier.ready("running: controller link up")
@@ -349,6 +352,23 @@ class Daemon:
         self.server.publish("link", self._link_event())
         if self.bus is not None and snap.link in (LinkState.UP, LinkState.DOWN):
             self.bus.publish_event(f"link_{snap.link.value}", detail)
+
+    def _check_drive(self) -> None:
+        """Warn when the controller's firmware is built for another chain than the rig file's
+        (the encoder then counts another pitch); the registration follows the controller's."""
+        from host.rig import chain_mismatch, current_rig
+
+        identity = getattr(self.controller, "identity", None)
+        if identity is None:
+            return
+        try:
+            chain = current_rig(self.config.rig.path).track.chain
+        except ConfigError:
+            return  # the file's problem is reported where it is read
+        problem = chain_mismatch(chain, identity.sprocket_teeth, identity.chain_pitch_mm)
+        if problem:
+            log.warning("controller built for another chain", extra={"kv": {"problem": problem}})
+        self.drive_problem = problem
 
     def _link_event(self) -> dict[str, Any]:
         """The `link` event: up or not, why not, and the counters."""

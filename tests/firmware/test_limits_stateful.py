@@ -7,7 +7,7 @@ from hypothesis import assume, settings
 from hypothesis import strategies as st
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, rule
 
-from firmware.config import SUB_PER_STEP, counts_to_um, steps_to_um
+from firmware.config import MECHANICS, SUB_PER_STEP
 from protocol import Fault, ParamId, State
 from protocol.messages import Ack, Estop, Heartbeat, Home, Jog, MoveTo, Nak, ParamSet, Stop
 from protocol.messages import ClearFault as ClearFaultCmd
@@ -121,7 +121,9 @@ class LimitMachine(RuleBasedStateMachine):
         if fw.state is State.ESTOP:
             return
         assert not fw.faults & (Fault.FOLLOWING_ERROR | Fault.HARD_LIMIT)
-        err = counts_to_um(fw.enc_pos) - steps_to_um(fw.profile.pos_sub // SUB_PER_STEP)
+        err = MECHANICS.counts_to_um(fw.enc_pos) - MECHANICS.steps_to_um(
+            fw.profile.pos_sub // SUB_PER_STEP
+        )
         assert abs(err) < TRACKING_TOLERANCE_UM
 
 

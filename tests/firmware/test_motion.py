@@ -5,7 +5,7 @@ from __future__ import annotations
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from firmware.config import SUB_PER_STEP, accel_to_msteps_per_tick, speed_to_msteps
+from firmware.config import MECHANICS, SUB_PER_STEP
 from firmware.motion import Profile, fastest_stoppable, stop_distance
 
 MAX_TICKS = 200_000
@@ -50,8 +50,8 @@ def test_move_lands_on_target_within_speed_and_accel(target: int, vmax: int, acc
 
 def test_paper_speed_move_takes_the_trapezoid_time() -> None:
     p = Profile()
-    speed = speed_to_msteps(100_000)  # 0.1 m/s, the paper's camera speed
-    accel = accel_to_msteps_per_tick(500_000)
+    speed = MECHANICS.speed_to_msteps(100_000)  # 0.1 m/s, the paper's camera speed
+    accel = MECHANICS.accel_to_msteps_per_tick(500_000)
     p.move_to(12_598, speed, accel, accel)  # 1 m
     ticks, _, _ = run(p)
     expected_s = 1.0 / 0.1 + 0.1 / 0.5  # cruise + one ramp's worth

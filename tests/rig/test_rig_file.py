@@ -10,6 +10,7 @@ import pytest
 
 from host.geometry.transforms import make_T, rot_z
 from host.rig import (
+    ChainSpec,
     Pose6,
     Provenance,
     RigError,
@@ -17,6 +18,7 @@ from host.rig import (
     backups,
     build_camera,
     build_kinematics,
+    chain_mismatch,
     dumps_rig,
     load_rig,
     loads_rig,
@@ -59,6 +61,20 @@ def test_default_rig_round_trips_text_and_value() -> None:
     assert dumps_rig(again) == text
 
 
+def test_another_chain_round_trips_and_drives_the_simulated_plant() -> None:
+    from hil_sim.rig_scenario import scenario_for_rig
+
+    spec = loads_rig("[track.chain]\nsprocket_teeth = 17\npitch_mm = 15.875\n")
+    assert spec.track.chain == ChainSpec(17, 15.875)
+    assert loads_rig(dumps_rig(spec)) == spec
+    build = scenario_for_rig(spec, seed=1).firmware_build()
+    assert (build.sprocket_teeth, build.chain_pitch_um) == (17, 15_875)
+    assert chain_mismatch(spec.track.chain, 17, 15.875) == ""
+    assert chain_mismatch(spec.track.chain, 20, 12.7) == (
+        "sprocket 20 teeth, the rig file's 17; pitch 12.7 mm, the rig file's 15.875 mm"
+    )
+
+
 def test_custom_open_track_round_trips_and_builds() -> None:
     spec = loads_rig(CUSTOM_OPEN)
     rig = build_kinematics(spec)
@@ -87,6 +103,12 @@ def test_custom_open_track_round_trips_and_builds() -> None:
         ("[head]\npan_min_deg = 10\npan_max_deg = 5", "head.pan_min_deg = 10: must be below"),
         ("[track.home]\nvalue_mm = 1e5", "track.home.value_mm = 100000.0: beyond the track"),
         ("[track.marks]\ns_mm = [10, 5]", "track.marks.s_mm[1] = 5.0: must be above"),
+        (
+            "[track.chain]\nsprocket_teeth = 2.5",
+            "track.chain.sprocket_teeth = 2.5: expected an int",
+        ),
+        ("[track.chain]\npitch_mm = 0", "track.chain.pitch_mm = 0: out of range"),
+        ("[track.chain]\nlinks = 3", "track.chain.links: unknown key"),
         (
             '[[track.segments]]\nkind = "arc"\nradius_mm = 0\nangle_deg = 90',
             "track.segments[0]: an arc needs radius_mm > 0",

@@ -141,6 +141,26 @@ async def test_daemon_waits_for_a_missing_controller_then_connects(hil_rig: Rigs
         await notes.close()
 
 
+async def test_a_controller_built_for_another_chain_is_named_in_status(hil_rig: Rigs) -> None:
+    """The rig file's chain is ISO 10B on a 17-tooth sprocket; the emulated controller is the
+    reference build (08B, 20 teeth): the daemon keeps running on the controller's pitch and
+    says what differs, in the status op and in `orbitar status`."""
+    rig = hil_rig(rig=rig_toml() + "[track.chain]\nsprocket_teeth = 17\npitch_mm = 15.875\n")
+    await asyncio.to_thread(rig.start_sim)
+    notes = await rig.start_daemon_notified(WATCHDOG_USEC=WATCHDOG_USEC)
+    try:
+        assert "controller link up" in await notes.wait_for("READY=1", 20.0)
+        problem = (await status(rig))["service"]["drive_problem"]
+        assert problem == (
+            "sprocket 20 teeth, the rig file's 17; pitch 12.7 mm, the rig file's 15.875 mm"
+        )
+        code, text = await cli(rig, "status")
+        assert code == 0, text
+        assert f"controller built for another chain: {problem}" in text
+    finally:
+        await notes.close()
+
+
 async def test_bad_model_path_is_a_clear_exit_2(tmp_path: Path) -> None:
     config = tmp_path / "orbitar.toml"
     text = daemon_config(tmp_path).replace('source = "none"', f'source = "{tmp_path}/x.avi"')
