@@ -43,6 +43,7 @@ from host.rig import update_rig
 
 MAX_STATIONS = 64
 MAX_POSES = 512
+MAX_TARGETS = 25
 MAX_ABS_MM = 1e6
 # views reused by a later run: same stations and zero to this, the board's centre to this
 REUSE_TOL_MM = 1e-3
@@ -92,6 +93,25 @@ def board_spec(args: Mapping[str, Any]) -> BoardSpec:
         return BoardSpec.from_dict(v)
     except (TypeError, ValueError) as exc:
         raise OpError("bad_args", str(exc)) from exc
+
+
+def image_targets(args: Mapping[str, Any]) -> tuple[tuple[float, float], ...]:
+    """`image_targets`: where the board's centre goes in each station's views, as fractions of
+    the image [[fx, fy], ...] (default: the centre and the four quarter points)."""
+    v = args.get("image_targets")
+    if v is None:
+        return IMAGE_TARGETS
+    why = f"image_targets = {v!r}: expected 1-{MAX_TARGETS} [fx, fy], each in (0, 1)"
+    if not isinstance(v, list) or not 1 <= len(v) <= MAX_TARGETS:
+        raise OpError("bad_args", why)
+    out = []
+    for t in v:
+        if not isinstance(t, list | tuple) or len(t) != 2 or not all(_finite(x) for x in t):
+            raise OpError("bad_args", why)
+        if not all(0.0 < x < 1.0 for x in t):
+            raise OpError("bad_args", why)
+        out.append((float(t[0]), float(t[1])))
+    return tuple(out)
 
 
 def thresholds(args: Mapping[str, Any]) -> intrinsics_run.Thresholds:
@@ -165,6 +185,7 @@ def _start_capture_run(
     reuse = args.get("reuse_views", False)
     if not isinstance(reuse, bool):
         raise OpError("bad_args", f"reuse_views = {reuse!r}: expected true or false")
+    targets = image_targets(args)
     controller = _filming(ctx, env)
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
@@ -177,7 +198,7 @@ def _start_capture_run(
             progress["planned"] = len(views)
         else:
             order = sweep(where, _trolley_s(controller, env))
-            plan = board_plan(rig, camera, centre, order, IMAGE_TARGETS, head_limits)
+            plan = board_plan(rig, camera, centre, order, targets, head_limits)
             progress["planned"] = len(plan)
             if not plan:
                 raise AbortedError("no view of the board can be planned from these stations")

@@ -5,8 +5,18 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
-from host.commissioning.plan import IMAGE_TARGETS, board_plan, other_way
+from host.commissioning.ops import image_targets
+from host.commissioning.plan import (
+    IMAGE_TARGETS,
+    aim_options,
+    aim_within,
+    board_plan,
+    other_way,
+    slew_rad,
+)
+from host.control.ops import OpError
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.transforms import transform_points
@@ -25,20 +35,21 @@ def test_a_head_that_tilts_one_way_only_is_aimed_the_other_way_round() -> None:
     rig, camera = Rig(), CameraModel()
     free = board_plan(rig, camera, BOARD_W, STATIONS)
     assert len(free) == len(STATIONS) * len(IMAGE_TARGETS)
-    # The free plan tilts both ways; a head whose tilt stops at 0 on one side still gets every
-    # view, by pan + π with the tilt mirrored.
-    sides = {math.copysign(1.0, v.tilt_rad) for v in free}
-    assert sides == {-1.0, 1.0}
+    # A head whose tilt stops at 0 on one side still gets every view, by pan + π with the tilt
+    # mirrored (the free plan tilts the other way in some of them).
+    aimed_other_way = 0
     for side in (1.0, -1.0):
         tilt = (0.0, math.pi / 2) if side > 0 else (-math.pi / 2, 0.0)
         limits = ((-math.pi, math.pi), tilt)
         plan = board_plan(rig, camera, BOARD_W, STATIONS, limits=limits)
         assert len(plan) == len(free)
+        aimed_other_way += sum(not tilt[0] <= v.tilt_rad <= tilt[1] for v in free)
         size = np.array([camera.width - 1.0, camera.height - 1.0])
         for view, (fx, fy) in zip(plan, IMAGE_TARGETS * len(STATIONS), strict=True):
             assert tilt[0] <= view.tilt_rad <= tilt[1]
             uv = _centre_pixel(rig, camera, view.s_mm, view.pan_rad, view.tilt_rad)
             assert np.hypot(*(uv - size * np.array([fx, fy]))) < 5.0
+    assert aimed_other_way > 0
 
 
 def test_a_pan_is_taken_into_limits_that_do_not_straddle_zero() -> None:
@@ -59,3 +70,35 @@ def test_the_other_way_points_the_camera_along_the_same_axis() -> None:
     # M_cr turns the camera ~8° about its axis and tilts it a little: the second branch is a
     # start for Newton's method, within a few degrees of the same direction
     assert math.degrees(math.acos(float(np.clip(axis @ axis2, -1.0, 1.0)))) < 3.0
+
+
+def test_of_the_two_ways_a_view_takes_the_one_nearer_the_view_before() -> None:
+    rig, camera = Rig(), CameraModel()
+    size = np.array([camera.width - 1.0, camera.height - 1.0])
+    plan = board_plan(rig, camera, BOARD_W, STATIONS)
+    wanted = [(s, size * np.array(t)) for s in STATIONS for t in IMAGE_TARGETS]
+    first_way = [aim_within(rig, camera, s, BOARD_W, uv, None) for s, uv in wanted]
+    chained = unchained = 0.0
+    for i, (view, (s, uv)) in enumerate(zip(plan, wanted, strict=True)):
+        options = aim_options(rig, camera, s, BOARD_W, uv, None)
+        assert len(options) == 2  # a free head reaches every view both ways
+        if i == 0:
+            assert (view.pan_rad, view.tilt_rad) == options[0]  # Rig.aim's way first
+            continue
+        before = (plan[i - 1].pan_rad, plan[i - 1].tilt_rad)
+        turn = slew_rad(before, (view.pan_rad, view.tilt_rad))
+        assert turn <= min(slew_rad(before, o) for o in options) + 1e-12
+        chained += turn
+        a, b = first_way[i - 1], first_way[i]
+        assert a is not None
+        assert b is not None
+        unchained += slew_rad(a, b)
+    assert chained < unchained  # the first way alone turns the head further somewhere
+
+
+def test_image_targets_are_checked_before_anything_moves() -> None:
+    assert image_targets({}) == IMAGE_TARGETS
+    assert image_targets({"image_targets": [[0.5, 0.5], [0.3, 0.7]]}) == ((0.5, 0.5), (0.3, 0.7))
+    for bad in ([], [[0.5]], [[0.0, 0.5]], [[0.5, 1.2]], [["a", 0.5]], "centre", [[0.5, 0.5]] * 26):
+        with pytest.raises(OpError, match="image_targets"):
+            image_targets({"image_targets": bad})
