@@ -89,13 +89,15 @@ def board_plan(
     stations_mm: Sequence[float],
     targets: Sequence[tuple[float, float]] = IMAGE_TARGETS,
     limits: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    start: tuple[float, float] | None = None,
 ) -> list[ViewTarget]:
-    """Views of the board from each station at each image target, within the head's limits."""
+    """Views of the board from each station at each image target, within the head's limits;
+    the first of the head's two ways nearer `start` (the head's angles now) if given."""
     plan: list[ViewTarget] = []
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     for s in stations_mm:
         for fx, fy in targets:
-            near = (plan[-1].pan_rad, plan[-1].tilt_rad) if plan else None
+            near = (plan[-1].pan_rad, plan[-1].tilt_rad) if plan else start
             uv = size * np.array([fx, fy])
             angles = aim_within(rig, camera, s, board_centre_w, uv, limits, near)
             if angles is None:

@@ -89,15 +89,17 @@ class Triangulated:
 def plan_views(
     rig: Rig, camera: CameraModel, points_w: FloatArray, stations_mm: Sequence[float],
     limits: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    start: tuple[float, float] | None = None,
 ) -> list[TargetView]:  # fmt: skip
     """Per station, as few views as keep every target well inside one of them; of the head's
-    two ways to each view, the one nearer the view before (`plan.aim_within`)."""
+    two ways to each view, the one nearer the view before (`plan.aim_within`; the first's
+    nearer `start`, the head's angles now, if given)."""
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     views: list[TargetView] = []
     for s in stations_mm:
         pending = list(range(len(points_w)))
         while pending:
-            near = (views[-1].target.pan_rad, views[-1].target.tilt_rad) if views else None
+            near = (views[-1].target.pan_rad, views[-1].target.tilt_rad) if views else start
             aim = points_w[pending].mean(axis=0)
             angles = aim_within(rig, camera, s, aim, size / 2, limits, near)
             inside = [] if angles is None else _inside(rig, camera, s, angles, points_w, pending)
