@@ -198,8 +198,7 @@ def _start_capture_run(
             progress["planned"] = len(views)
         else:
             order = sweep(where, _trolley_s(controller, env))
-            head = _head_now(controller)
-            plan = board_plan(rig, camera, centre, order, targets, head_limits, head)
+            plan = board_plan(rig, camera, centre, order, targets, head_limits)
             progress["planned"] = len(plan)
             if not plan:
                 raise AbortedError("no view of the board can be planned from these stations")

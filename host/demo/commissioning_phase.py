@@ -23,7 +23,7 @@ import numpy as np
 from hil_sim.camera import PlacedBoard
 from host.calibration.board import BoardSpec
 from host.commissioning.client import CommissioningPlan, RunFailedError, run_op
-from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_options
+from host.commissioning.plan import IMAGE_TARGETS, board_plan
 from host.control.client import ControlClient
 from host.demo.daemon_phase import RunningDaemon
 from host.demo.experiments import DEMO_WATCHDOG_MS, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD
@@ -172,23 +172,16 @@ def board_view_conflicts(
     rigs: DemoRigs, rig: Rig, camera: CameraModel, board: BoardSpec, T_w_b: FloatArray,
     s_mm: float,
 ) -> tuple[int, int]:  # fmt: skip
-    """Over the board views of the commissioning plan for a board at T_w_b above s_mm, each
-    both ways the head reaches it: (views in which the drawing's workpiece edges cross more
-    than `BOARD_MAX_CROSSED` of the markers in view, views that cannot be planned). The simulated camera, like a real one behind a thin
+    """Over the board views of the commissioning plan for a board at T_w_b above s_mm: (views in
+    which the drawing's workpiece edges cross more than `BOARD_MAX_CROSSED` of the markers in
+    view, views that cannot be planned). The simulated camera, like a real one behind a thin
     wire frame, draws the edges over the board, and a marker an edge crosses does not decode."""
     intrinsics, check = board_stations(rigs, s_mm)
     centre = (T_w_b @ np.append(board.centre_mm, 1.0))[:3]
     head = rigs.host.head
     limits = ((head.pan_min_rad, head.pan_max_rad), (head.tilt_min_rad, head.tilt_max_rad))
-    # Of the head's two ways to a view a run takes the one nearer where the head is: judge
-    # both ways of every view.
-    size = np.array([camera.width - 1.0, camera.height - 1.0])
-    views, planned = [], 0
-    for s in [*intrinsics, *check]:
-        for fx, fy in IMAGE_TARGETS:
-            ways = aim_options(rig, camera, s, centre, size * np.array([fx, fy]), limits)
-            views += [ViewTarget(s, pan, tilt, "") for pan, tilt in ways]
-            planned += bool(ways)
+    where = [*intrinsics, *check]
+    views = board_plan(rig, camera, centre, where, IMAGE_TARGETS, limits)
     markers_b = np.asarray(board.make().getObjPoints(), dtype=np.float64).reshape(-1, 3)
     markers_w = transform_points(T_w_b, markers_b)
     model = model_of(rigs.host)
@@ -204,7 +197,7 @@ def board_view_conflicts(
         lines = ends[model.edges][e_ok[model.edges].all(axis=1)]
         crossed = _segments_cross(lines, quads[seen])
         spoilt += int(seen.sum()) > 0 and crossed.sum() > BOARD_MAX_CROSSED * seen.sum()
-    return int(spoilt), (len(intrinsics) + len(check)) * len(IMAGE_TARGETS) - planned
+    return int(spoilt), len(where) * len(IMAGE_TARGETS) - len(views)
 
 
 def _pinhole(

@@ -16,6 +16,7 @@ from host.commissioning.plan import (
     other_way,
     slew_rad,
 )
+from host.commissioning.targets_run import plan_views
 from host.control.ops import OpError
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
@@ -35,21 +36,20 @@ def test_a_head_that_tilts_one_way_only_is_aimed_the_other_way_round() -> None:
     rig, camera = Rig(), CameraModel()
     free = board_plan(rig, camera, BOARD_W, STATIONS)
     assert len(free) == len(STATIONS) * len(IMAGE_TARGETS)
-    # A head whose tilt stops at 0 on one side still gets every view, by pan + π with the tilt
-    # mirrored (the free plan tilts the other way in some of them).
-    aimed_other_way = 0
+    # The free plan tilts both ways; a head whose tilt stops at 0 on one side still gets every
+    # view, by pan + π with the tilt mirrored.
+    sides = {math.copysign(1.0, v.tilt_rad) for v in free}
+    assert sides == {-1.0, 1.0}
     for side in (1.0, -1.0):
         tilt = (0.0, math.pi / 2) if side > 0 else (-math.pi / 2, 0.0)
         limits = ((-math.pi, math.pi), tilt)
         plan = board_plan(rig, camera, BOARD_W, STATIONS, limits=limits)
         assert len(plan) == len(free)
-        aimed_other_way += sum(not tilt[0] <= v.tilt_rad <= tilt[1] for v in free)
         size = np.array([camera.width - 1.0, camera.height - 1.0])
         for view, (fx, fy) in zip(plan, IMAGE_TARGETS * len(STATIONS), strict=True):
             assert tilt[0] <= view.tilt_rad <= tilt[1]
             uv = _centre_pixel(rig, camera, view.s_mm, view.pan_rad, view.tilt_rad)
             assert np.hypot(*(uv - size * np.array([fx, fy]))) < 5.0
-    assert aimed_other_way > 0
 
 
 def test_a_pan_is_taken_into_limits_that_do_not_straddle_zero() -> None:
@@ -72,28 +72,41 @@ def test_the_other_way_points_the_camera_along_the_same_axis() -> None:
     assert math.degrees(math.acos(float(np.clip(axis @ axis2, -1.0, 1.0)))) < 3.0
 
 
-def test_of_the_two_ways_a_view_takes_the_one_nearer_the_view_before() -> None:
+def test_with_near_a_view_takes_the_way_the_head_reaches_soonest() -> None:
+    rig, camera = Rig(), CameraModel()
+    size = np.array([camera.width - 1.0, camera.height - 1.0])
+    uv = size * np.array([0.3, 0.7])
+    first, other = aim_options(rig, camera, 1700.0, BOARD_W, uv, None)
+    assert aim_within(rig, camera, 1700.0, BOARD_W, uv, None) == first  # Rig.aim's way
+    for near in (first, other):
+        assert aim_within(rig, camera, 1700.0, BOARD_W, uv, None, near) == near
+    # the other way points the camera along the same axis, rolled: the point at the same pixel
+    for pan, tilt in (first, other):
+        assert np.hypot(*(_centre_pixel(rig, camera, 1700.0, pan, tilt) - uv)) < 5.0
+
+
+def test_board_plans_take_rig_aims_way_so_their_views_tilt_both_ways() -> None:
     rig, camera = Rig(), CameraModel()
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     plan = board_plan(rig, camera, BOARD_W, STATIONS)
     wanted = [(s, size * np.array(t)) for s in STATIONS for t in IMAGE_TARGETS]
-    first_way = [aim_within(rig, camera, s, BOARD_W, uv, None) for s, uv in wanted]
-    chained = unchained = 0.0
-    for i, (view, (s, uv)) in enumerate(zip(plan, wanted, strict=True)):
-        options = aim_options(rig, camera, s, BOARD_W, uv, None)
-        assert len(options) == 2  # a free head reaches every view both ways
-        if i == 0:
-            assert (view.pan_rad, view.tilt_rad) == options[0]  # Rig.aim's way first
-            continue
-        before = (plan[i - 1].pan_rad, plan[i - 1].tilt_rad)
-        turn = slew_rad(before, (view.pan_rad, view.tilt_rad))
-        assert turn <= min(slew_rad(before, o) for o in options) + 1e-12
-        chained += turn
-        a, b = first_way[i - 1], first_way[i]
-        assert a is not None
-        assert b is not None
-        unchained += slew_rad(a, b)
-    assert chained < unchained  # the first way alone turns the head further somewhere
+    for view, (s, uv) in zip(plan, wanted, strict=True):
+        assert (view.pan_rad, view.tilt_rad) == aim_options(rig, camera, s, BOARD_W, uv, None)[0]
+    assert {math.copysign(1.0, v.tilt_rad) for v in plan} == {-1.0, 1.0}
+
+
+def test_the_targets_plan_turns_the_head_the_nearer_way() -> None:
+    rig, camera = Rig(), CameraModel()
+    points_w = BOARD_W + np.array([[0.0, 0.0, 0.0], [300.0, 0.0, 0.0], [0.0, 200.0, 0.0]])
+    plans = {}
+    for start in ((math.pi / 2, 0.0), (-math.pi / 2, 0.0)):
+        views = plan_views(rig, camera, points_w, STATIONS, None, start)
+        assert sorted({k for v in views for k in v.wanted}) == [0, 1, 2]
+        plans[start] = [(v.target.pan_rad, v.target.tilt_rad) for v in views]
+    (a, first_a), (b, first_b) = ((s, p[0]) for s, p in plans.items())
+    # each plan's first view is the way nearer its own start, the other plan's the other way
+    assert slew_rad(a, first_a) < slew_rad(a, first_b)
+    assert slew_rad(b, first_b) < slew_rad(b, first_a)
 
 
 def test_image_targets_are_checked_before_anything_moves() -> None:
