@@ -97,12 +97,11 @@ def board_plan(
     the board see it on either side of the tilt's zero), and the head calibration needs both.
     Planned the nearer way, all tilted one way, the acceptance check's RMS rose from ~0.05 to
     0.33 px (seed 2)."""
-    plan: list[ViewTarget] = []
+    plan = []
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     for s in stations_mm:
         for fx, fy in targets:
-            uv = size * np.array([fx, fy])
-            angles = aim_within(rig, camera, s, board_centre_w, uv, limits)
+            angles = aim_within(rig, camera, s, board_centre_w, size * np.array([fx, fy]), limits)
             if angles is None:
                 continue
             plan.append(

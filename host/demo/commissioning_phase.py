@@ -177,10 +177,10 @@ def board_view_conflicts(
     view, views that cannot be planned). The simulated camera, like a real one behind a thin
     wire frame, draws the edges over the board, and a marker an edge crosses does not decode."""
     intrinsics, check = board_stations(rigs, s_mm)
+    where = [*intrinsics, *check]
     centre = (T_w_b @ np.append(board.centre_mm, 1.0))[:3]
     head = rigs.host.head
     limits = ((head.pan_min_rad, head.pan_max_rad), (head.tilt_min_rad, head.tilt_max_rad))
-    where = [*intrinsics, *check]
     views = board_plan(rig, camera, centre, where, IMAGE_TARGETS, limits)
     markers_b = np.asarray(board.make().getObjPoints(), dtype=np.float64).reshape(-1, 3)
     markers_w = transform_points(T_w_b, markers_b)
