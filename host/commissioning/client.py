@@ -16,7 +16,7 @@ from typing import Any
 
 from host.control.client import ControlClient
 
-POLL_S = 0.25
+POLL_S = 0.1  # `commissioning_status` only reads the job board: a run's end is seen soon
 CANCEL_TIMEOUT_S = 2.0
 ProgressFn = Callable[[dict[str, Any]], None]
 

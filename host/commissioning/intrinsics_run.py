@@ -1,8 +1,8 @@
 """`orbitar calibrate intrinsics`: capture board views along a plan, solve the lens, judge it.
 
 The run visits every planned view, takes a frame once the rig is still and keeps it when the
-board is found with enough corners and sharp edges (a blurred frame is retaken up to
-`RETAKES` times, then refused). The lens is solved with skew and σ
+board is found with enough corners and sharp edges (a blurred view is visited again at the end,
+up to `RETAKES` times, then refused). The lens is solved with skew and σ
 (host.calibration.intrinsics), outlier views dropped by their RMS. The verdict passes only if
 enough views were kept, they cover the image in X, Y, size and skew, the RMS is within the
 threshold and the σ are as small as `Thresholds` asks; only then may the result be written.
@@ -110,39 +110,64 @@ async def capture(
     nominal: CameraModel,
     progress: dict[str, Any],
 ) -> list[CapturedView]:
-    """Visit the plan's views and keep the sharp ones; progress shows counts and coverage."""
-    views: list[CapturedView] = []
-    for i, target in enumerate(plan):
-        progress.update(phase="capturing", view=i + 1, of=len(plan), label=target.label)
-        await io.go(target)
-        view = CapturedView(target, "not found")
-        for attempt in range(RETAKES + 1):
-            frame = await io.grab()
-            snap = io.snapshot()
-            head = snap.get("head_rad") or (float("nan"), float("nan"))
-            s_mm = io.s_mm(snap)
-            view.s_mm = float("nan") if s_mm is None else s_mm
-            view.head_rad = (float(head[0]), float(head[1]))
-            det = await asyncio.to_thread(detector.detect, frame.image)
-            view.attempts = attempt + 1
-            if det is None:
-                view.status = "not found"
-                break  # a board out of view stays out of view: do not retake
-            view.detection = det
-            view.status = "ok" if det.sharp else "blurred"
-            if det.sharp:
-                view.cover = coverage.view_coverage(det.object_points, det.image_points, nominal)
-                break
-        views.append(view)
-        kept = [v.cover for v in views if v.cover is not None]
-        progress.update(
-            accepted=len(kept),
-            blurred=sum(v.status == "blurred" for v in views),
-            not_found=sum(v.status == "not found" for v in views),
-            coverage=coverage.progress(kept),
-            view_errors=[view_error(v) for v in views],
-        )
+    """Visit the plan's views and keep the sharp ones; progress shows counts and coverage.
+
+    A view's frame is searched for the board while the rig goes on to the next view (the
+    search takes a good part of a head move); the views found blurred are visited again at the
+    end, up to `RETAKES` times. A board out of view stays out of view: it is not retaken.
+    """
+    views = [CapturedView(target, "not found") for target in plan]
+    for attempt in range(1, RETAKES + 2):
+        todo = [v for v in views if v.status == "blurred"] if attempt > 1 else views
+        searches: list[asyncio.Task[None]] = []
+        try:
+            for i, view in enumerate(todo):
+                label = view.target.label + (" (retake)" if attempt > 1 else "")
+                progress.update(phase="capturing", view=i + 1, of=len(todo), label=label)
+                await io.go(view.target)
+                frame = await io.grab()
+                snap = io.snapshot()
+                head = snap.get("head_rad") or (float("nan"), float("nan"))
+                s_mm = io.s_mm(snap)
+                view.s_mm = float("nan") if s_mm is None else s_mm
+                view.head_rad = (float(head[0]), float(head[1]))
+                search = _search(view, frame.image, attempt, detector, nominal)
+                searches.append(asyncio.create_task(search))
+                searches[-1].add_done_callback(lambda _: _show(views, progress))
+            await asyncio.gather(*searches)
+        finally:
+            for task in searches:
+                task.cancel()
     return views
+
+
+async def _search(
+    view: CapturedView, image: np.ndarray, attempt: int, detector: BoardDetector,
+    nominal: CameraModel,
+) -> None:  # fmt: skip
+    """Find the board in a view's frame (in a worker thread) and judge its sharpness."""
+    det = await asyncio.to_thread(detector.detect, image)
+    view.attempts = attempt
+    if det is None:
+        view.status = "not found"
+        return
+    view.detection = det
+    view.status = "ok" if det.sharp else "blurred"
+    if det.sharp:
+        view.cover = coverage.view_coverage(det.object_points, det.image_points, nominal)
+
+
+def _show(views: list[CapturedView], progress: dict[str, Any]) -> None:
+    """Counts, coverage and per-view errors of the views searched so far."""
+    searched = [v for v in views if v.attempts]
+    kept = [v.cover for v in searched if v.cover is not None]
+    progress.update(
+        accepted=len(kept),
+        blurred=sum(v.status == "blurred" for v in searched),
+        not_found=sum(v.status == "not found" for v in searched),
+        coverage=coverage.progress(kept),
+        view_errors=[view_error(v) for v in searched],
+    )
 
 
 def view_error(view: CapturedView) -> dict[str, Any]:

@@ -105,18 +105,21 @@ async def capture_passes(
     io: RigIO, tap: FrameTap, pose_at: PoseAt, detector: BoardDetector, view: ViewTarget,
     span_mm: float, speed_mm_s: float, passes: int, progress: dict[str, Any],
 ) -> list[PassFrame]:  # fmt: skip
-    """Aim at the board from the middle, then pass back and forth, keeping every frame.
+    """Aim at the board from the middle, then pass back and forth from the end of the span
+    nearer the trolley, keeping every frame.
 
     The pose source's view of each frame is taken during the pass, as soon as the samples after
     its stamp have arrived: its buffers reach back only the registration horizon (2 s), less
     than a few passes take.
     """
-    start = ViewTarget(view.s_mm - span_mm / 2, view.pan_rad, view.tilt_rad, view.label)
+    now = io.s_mm(io.snapshot())
+    first = -1.0 if now is not None and now > view.s_mm else 1.0  # the first pass's direction
+    start = ViewTarget(view.s_mm - first * span_mm / 2, view.pan_rad, view.tilt_rad, view.label)
     await io.go(start)
     raw: list[tuple[Frame, tuple[float, float, float, float] | None]] = []
     for k in range(passes):
         progress.update(phase="passing", view=k + 1, of=passes)
-        direction = 1.0 if k % 2 == 0 else -1.0
+        direction = first if k % 2 == 0 else -first
         target = view.s_mm + direction * span_mm / 2 - io.home_s_mm
         io.snapshot()
         await io.controller.move_to(target, speed_mm_s)

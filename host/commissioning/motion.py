@@ -4,10 +4,10 @@ Every motion goes through the daemon's controller, like any operator command; be
 the run checks the controller's state, and a latched e-stop or fault ends the run at once (a STOP
 also cancels the run: host/commissioning/jobs.py). "Still" means the trolley is within
 `POSITION_TOL_MM` of its target and READY, the head's reported angles are within
-`HEAD_TOL_RAD` of the command, and `SETTLE_S` has passed for the ring-down after a trolley move
-(the rotor on its chain rings at ~14 Hz, ζ ≈ 0.2: 0.3 s is five time constants) or
-`HEAD_SETTLE_S` after a head move alone; the frame taken is one stamped after that, plus a
-margin for a camera that stamps at delivery.
+`HEAD_TOL_RAD` of the command, `HEAD_SETTLE_S` has passed since the head got there and
+`SETTLE_S` since the trolley did, for the ring-down after a trolley move (the rotor on its chain
+rings at ~14 Hz, ζ ≈ 0.2: 0.3 s is five time constants; it rings down while the head turns);
+the frame taken is one stamped after that, plus a margin for a camera that stamps at delivery.
 """
 
 from __future__ import annotations
@@ -72,16 +72,19 @@ class RigIO:
         target = view.s_mm - self.home_s_mm  # plans speak arc length, the controller its zero
         position = self.snapshot().get("position_mm")
         moving = position is None or abs(float(position) - target) > POSITION_TOL_MM
+        rest_s = 0.0  # monotonic time from which the trolley has rung down
         if moving:
             await self.controller.move_to(target, self.speed_mm_s)
             where = f"trolley to s = {view.s_mm:.0f} mm"
             await self._until(lambda s: _at(s, target), MOVE_TIMEOUT_S, where)
+            rest_s = time.monotonic() + self.settle_s
         self.snapshot()
         # Not while travelling: with the head turning as the trolley ran, the daemon's pose
         # source read the following passes 9-16 % slow (seed 1), failing calibrate_latency.
         await self.controller.set_head(view.pan_rad, view.tilt_rad)
         await self._until(lambda s: _head_at(s, view), HEAD_TIMEOUT_S, "head to its angles")
-        await asyncio.sleep(self.settle_s if moving else self.head_settle_s)
+        rest_s = max(rest_s, time.monotonic() + self.head_settle_s)
+        await asyncio.sleep(rest_s - time.monotonic())
 
     async def grab(self) -> Frame:
         """A frame exposed after the rig came to rest."""

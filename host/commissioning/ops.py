@@ -33,7 +33,7 @@ from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
 from host.commissioning.jobs import Filmed, JobBusyError, Progress
 from host.commissioning.motion import TRAVEL_SPEED_MM_S, AbortedError, RigIO
-from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_at_pixel, board_plan, sweep
+from host.commissioning.plan import IMAGE_TARGETS, ViewTarget, aim_within, board_plan, sweep
 from host.commissioning.report import Page, run_dir, write_page
 from host.control.ops import MAX_SPEED_MM_S, Handler, OpContext, OpError, Role, number
 from host.geometry.camera import CameraModel
@@ -43,6 +43,7 @@ from host.rig import update_rig
 
 MAX_STATIONS = 64
 MAX_POSES = 512
+MAX_TARGETS = 25
 MAX_ABS_MM = 1e6
 # views reused by a later run: same stations and zero to this, the board's centre to this
 REUSE_TOL_MM = 1e-3
@@ -92,6 +93,25 @@ def board_spec(args: Mapping[str, Any]) -> BoardSpec:
         return BoardSpec.from_dict(v)
     except (TypeError, ValueError) as exc:
         raise OpError("bad_args", str(exc)) from exc
+
+
+def image_targets(args: Mapping[str, Any]) -> tuple[tuple[float, float], ...]:
+    """`image_targets`: where the board's centre goes in each station's views, as fractions of
+    the image [[fx, fy], ...] (default: the centre and the four quarter points)."""
+    v = args.get("image_targets")
+    if v is None:
+        return IMAGE_TARGETS
+    why = f"image_targets = {v!r}: expected 1-{MAX_TARGETS} [fx, fy], each in (0, 1)"
+    if not isinstance(v, list) or not 1 <= len(v) <= MAX_TARGETS:
+        raise OpError("bad_args", why)
+    out = []
+    for t in v:
+        if not isinstance(t, list | tuple) or len(t) != 2 or not all(_finite(x) for x in t):
+            raise OpError("bad_args", why)
+        if not all(0.0 < x < 1.0 for x in t):
+            raise OpError("bad_args", why)
+        out.append((float(t[0]), float(t[1])))
+    return tuple(out)
 
 
 def thresholds(args: Mapping[str, Any]) -> intrinsics_run.Thresholds:
@@ -165,6 +185,7 @@ def _start_capture_run(
     reuse = args.get("reuse_views", False)
     if not isinstance(reuse, bool):
         raise OpError("bad_args", f"reuse_views = {reuse!r}: expected true or false")
+    targets = image_targets(args)
     controller = _filming(ctx, env)
     head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
@@ -177,7 +198,7 @@ def _start_capture_run(
             progress["planned"] = len(views)
         else:
             order = sweep(where, _trolley_s(controller, env))
-            plan = board_plan(rig, camera, centre, order, IMAGE_TARGETS, head_limits)
+            plan = board_plan(rig, camera, centre, order, targets, head_limits)
             progress["planned"] = len(plan)
             if not plan:
                 raise AbortedError("no view of the board can be planned from these stations")
@@ -214,6 +235,12 @@ def _trolley_s(controller: Any, env: CommissioningEnv) -> float | None:
     """The trolley's arc length now (None if the controller does not know it)."""
     pos = controller.snapshot().get("position_mm")
     return None if pos is None else float(pos) + env.home_s_mm()
+
+
+def _head_now(controller: Any) -> tuple[float, float] | None:
+    """The head's (pan, tilt) now, where a plan's first view turns it from (None if unknown)."""
+    head = controller.snapshot().get("head_rad")
+    return None if not head else (float(head[0]), float(head[1]))
 
 
 def _job_id(env: CommissioningEnv) -> int:
@@ -285,11 +312,13 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
     controller, pose_at = ctx.controller, env.pose_at
     limits = latency_run.LatencyThresholds()
     centre = (T_w_b @ np.append(spec.centre_mm, 1.0))[:3]
+    head_limits = (ctx.pan_limits_rad, ctx.tilt_limits_rad)
 
     async def run(progress: Progress) -> dict[str, Any]:
         tap, rig, camera = _camera_now(env)
         size = np.array([camera.width - 1.0, camera.height - 1.0])
-        angles = aim_at_pixel(rig, camera, station, centre, size / 2)
+        head = _head_now(controller)
+        angles = aim_within(rig, camera, station, centre, size / 2, head_limits, head)
         if angles is None:
             raise AbortedError(f"the board cannot be aimed at from s = {station:.0f} mm")
         view = ViewTarget(station, angles[0], angles[1], f"s={station:.0f}")
@@ -385,7 +414,8 @@ def _survey_workpiece_camera(
         rough = spec.workpiece.frame.matrix  # the drawing's: only to predict where to look
         points_w = transform_points(rough, model_p)
         order = sweep(where, _trolley_s(controller, env))
-        views = targets_run.plan_views(rig, camera, points_w, order, head_limits)
+        head = _head_now(controller)
+        views = targets_run.plan_views(rig, camera, points_w, order, head_limits, head)
         progress["planned"] = len(views)
         if not views:
             raise AbortedError("no view of the targets can be planned from these stations")

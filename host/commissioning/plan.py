@@ -8,7 +8,10 @@ vary its size and its tilt to the optical axis. The aiming is Newton's method on
 centre's pixel, two angles for two coordinates, started from `Rig.aim`. A pan/tilt head reaches
 most directions two ways (pan + π with the tilt mirrored): a view whose first solution lies
 outside the head's limits is aimed the other way, and a pan is taken modulo 2π into them, so a
-head whose tilt only turns one way (or whose pan stops short of ±π) still gets its views.
+head whose tilt only turns one way (or whose pan stops short of ±π) still gets its views. Where
+both ways fit, a board view takes the first (`board_plan` says why); a view of the workpiece's
+targets takes the one nearer the view before it (`aim_within` with `near`): the head slews at
+about 1 rad/s, and the other way round can be a turn of π.
 """
 
 from __future__ import annotations
@@ -87,7 +90,13 @@ def board_plan(
     targets: Sequence[tuple[float, float]] = IMAGE_TARGETS,
     limits: tuple[tuple[float, float], tuple[float, float]] | None = None,
 ) -> list[ViewTarget]:
-    """Views of the board from each station at each image target, within the head's limits."""
+    """Views of the board from each station at each image target, within the head's limits.
+
+    Each view takes `Rig.aim`'s way where it fits, not the one nearer the view before: that
+    turns the head further, but the views then tilt both ways (the stations before and after
+    the board see it on either side of the tilt's zero), and the head calibration needs both.
+    Planned the nearer way, all tilted one way, the acceptance check's RMS rose from ~0.05 to
+    0.33 px (seed 2)."""
     plan = []
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     for s in stations_mm:
@@ -104,18 +113,38 @@ def board_plan(
 def aim_within(
     rig: Rig, camera: CameraModel, s_mm: float, point_w: FloatArray, target_uv: FloatArray,
     limits: tuple[tuple[float, float], tuple[float, float]] | None,
+    near: tuple[float, float] | None = None,
 ) -> tuple[float, float] | None:  # fmt: skip
     """`aim_at_pixel` within the head's limits: either way of reaching the direction, the pan
-    taken modulo 2π; None when neither fits."""
+    taken modulo 2π; the first way that fits, or with `near` the one the head reaches soonest
+    from there; None when neither fits."""
+    options = aim_options(rig, camera, s_mm, point_w, target_uv, limits)
+    if not options or near is None:
+        return options[0] if options else None
+    return min(options, key=lambda a: slew_rad(near, a))
+
+
+def aim_options(
+    rig: Rig, camera: CameraModel, s_mm: float, point_w: FloatArray, target_uv: FloatArray,
+    limits: tuple[tuple[float, float], tuple[float, float]] | None,
+) -> list[tuple[float, float]]:  # fmt: skip
+    """Both ways of putting a world point at a pixel that lie within the limits (`Rig.aim`'s
+    first, the smaller head excursion)."""
     first = rig.aim(s_mm, point_w)
+    out = []
     for start in (first, other_way(rig, first)):
         angles = aim_at_pixel(rig, camera, s_mm, point_w, target_uv, start)
         if angles is None:
             continue
         angles = wrap_pan(angles, limits)
         if within_limits(angles, limits):
-            return angles
-    return None
+            out.append(angles)
+    return out
+
+
+def slew_rad(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """How far the head turns from a to b: both axes slew at once, the larger angle counts."""
+    return max(abs(a[0] - b[0]), abs(a[1] - b[1]))
 
 
 def other_way(rig: Rig, angles: tuple[float, float]) -> tuple[float, float]:

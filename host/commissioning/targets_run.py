@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from host.commissioning.motion import RigIO
-from host.commissioning.plan import ViewTarget, aim_at_pixel, within_limits
+from host.commissioning.plan import ViewTarget, aim_within
 from host.commissioning.report import Page, text_table
 from host.commissioning.survey import WorkpieceFit, fit_frame
 from host.geometry.camera import CameraModel
@@ -89,22 +89,26 @@ class Triangulated:
 def plan_views(
     rig: Rig, camera: CameraModel, points_w: FloatArray, stations_mm: Sequence[float],
     limits: tuple[tuple[float, float], tuple[float, float]] | None = None,
+    start: tuple[float, float] | None = None,
 ) -> list[TargetView]:  # fmt: skip
-    """Per station, as few views as keep every target well inside one of them."""
+    """Per station, as few views as keep every target well inside one of them; of the head's
+    two ways to each view, the one nearer the view before (`plan.aim_within`; the first's
+    nearer `start`, the head's angles now, if given)."""
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     views: list[TargetView] = []
     for s in stations_mm:
         pending = list(range(len(points_w)))
         while pending:
+            near = (views[-1].target.pan_rad, views[-1].target.tilt_rad) if views else start
             aim = points_w[pending].mean(axis=0)
-            angles = aim_at_pixel(rig, camera, s, aim, size / 2)
+            angles = aim_within(rig, camera, s, aim, size / 2, limits, near)
             inside = [] if angles is None else _inside(rig, camera, s, angles, points_w, pending)
             if len(inside) < len(pending):  # not all at once: centre the first one left
-                angles = aim_at_pixel(rig, camera, s, points_w[pending[0]], size / 2)
+                angles = aim_within(rig, camera, s, points_w[pending[0]], size / 2, limits, near)
                 inside = (
                     [] if angles is None else _inside(rig, camera, s, angles, points_w, pending)
                 )
-            if angles is None or not inside or not within_limits(angles, limits):
+            if angles is None or not inside:
                 pending.pop(0)  # cannot be seen from here
                 continue
             label = f"s={s:.0f} " + ",".join(f"T{i + 1}" for i in inside)
@@ -194,14 +198,17 @@ def triangulate(
 ) -> tuple[list[Triangulated], float]:
     """Each target seen in ≥ 2 views at an angle; the pixel σ the rays' misfit implies."""
     rays: dict[int, list[tuple[FloatArray, FloatArray, FloatArray, FloatArray]]] = {}
-    for v in views:
-        if not np.isfinite([v.s_mm, *v.head_rad]).all():
-            continue
-        T_w_c = rig.T_w_c(v.s_mm, *v.head_rad)
-        for k, uv in v.found.items():
-            xy = camera.undistort_normalized(uv[None, :])[0]
-            d = T_w_c[:3, :3] @ np.array([xy[0], xy[1], 1.0])
-            rays.setdefault(k, []).append((T_w_c[:3, 3], d / np.linalg.norm(d), uv, T_w_c))
+    sightings = [
+        (k, uv, rig.T_w_c(v.s_mm, *v.head_rad))
+        for v in views
+        if np.isfinite([v.s_mm, *v.head_rad]).all()
+        for k, uv in v.found.items()
+    ]
+    if sightings:  # one undistortion for all (elementwise: the same as one at a time)
+        xys = camera.undistort_normalized(np.array([uv for _, uv, _ in sightings]))
+    for (k, uv, T_w_c), xy in zip(sightings, xys if sightings else [], strict=True):
+        d = T_w_c[:3, :3] @ np.array([xy[0], xy[1], 1.0])
+        rays.setdefault(k, []).append((T_w_c[:3, 3], d / np.linalg.norm(d), uv, T_w_c))
     points: list[tuple[int, FloatArray, FloatArray, float, FloatArray]] = []
     for k in range(count):
         got = rays.get(k, [])
