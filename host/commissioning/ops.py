@@ -244,7 +244,7 @@ async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         out = head_run.judge_head(
             views, rig, camera, T_w_b, cov_b, limits, env.camera_cov(), home_sigma, head_sigma
         )
-        updates = head_run.head_rig_update(out, True) if out.passed else {}
+        updates = head_run.head_rig_update(out, True, home_sigma) if out.passed else {}
         return out.summary(), head_run.head_page(out, limits), updates
 
     return _start_capture_run(
