@@ -75,6 +75,9 @@ class HandEyeResult:
     # is T_b_track's, the board survey being independent of the camera
     camera_cross: FloatArray | None = None
     camera_cov: FloatArray | None = None
+    # Cov(δ(M_cr, T_b_track), δ zero), 12: the fit moves with the zero the views' arc lengths
+    # were counted from (on a straight the placement takes it up); None without a zero's σ
+    home_cross: FloatArray | None = None
 
     @property
     def cov_M_cr(self) -> FloatArray:
@@ -131,8 +134,10 @@ def calibrate_handeye(
     if head_sigma_rad > 0.0:
         A_h = _head_term(problem, views, track, mount, M_cr, T_b_k, J)
         cov = cov + head_sigma_rad**2 * (A_h @ A_h.T)
+    home_cross = None
     if home_sigma_mm > 0.0:
-        cov = cov + _home_term(views, track, mount, problem, M_cr, T_b_k, J, home_sigma_mm)
+        A_s = _home_term(views, track, mount, problem, M_cr, T_b_k, J)
+        cov, home_cross = cov + home_sigma_mm**2 * np.outer(A_s, A_s), home_sigma_mm**2 * A_s
     rot_res, trans_res = _pose_residuals(M_cr, T_b_k, T_k_r, T_c_b)
     T_wb = np.eye(4) if T_w_b is None else np.asarray(T_w_b, dtype=np.float64)
     cov_wb = np.zeros((6, 6)) if cov_T_w_b is None else np.asarray(cov_T_w_b, dtype=np.float64)
@@ -142,7 +147,7 @@ def calibrate_handeye(
     rms_v = np.array([float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) for e in per_view])
     return HandEyeResult(
         M_cr, T_b_k, T_wb @ T_b_k, problem.rms(M_cr, T_b_k), initial, rot_res, trans_res,
-        cov, cov_wk, rms_v, per_view, cross, cam_cov,
+        cov, cov_wk, rms_v, per_view, cross, cam_cov, home_cross,
     )  # fmt: skip
 
 
@@ -187,9 +192,10 @@ def _head_term(
 
 def _home_term(
     views: Sequence[HandEyeView], track: Track, mount: FloatArray, problem: _Problem,
-    M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray, sigma_mm: float,
+    M_cr: FloatArray, T_b_k: FloatArray, J: FloatArray,
 ) -> FloatArray:  # fmt: skip
-    """Covariance a common error of every view's arc length (the home's) adds."""
+    """How the fit moves with a common error of every view's arc length (the zero's): δx =
+    A_s δs, (12,)."""
     step = 1.0
     shifted = [
         track.local_pose(v.s_mm + step) @ mount @ head_rotation(v.pan_rad, v.tilt_rad)
@@ -197,8 +203,7 @@ def _home_term(
     ]
     moved = _Problem(views, shifted, problem.camera)
     J_s = (moved.residuals(M_cr, T_b_k) - problem.residuals(M_cr, T_b_k)) / step
-    A = -np.linalg.pinv(J.T @ J) @ J.T @ J_s
-    out: FloatArray = sigma_mm**2 * np.outer(A, A)
+    out: FloatArray = -np.linalg.pinv(J.T @ J) @ J.T @ J_s
     return out
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
+from collections.abc import Callable
 
 from host.frames.sources import Frame, FrameSource
 
@@ -55,10 +56,15 @@ class NoFramesError(RuntimeError):
     """The camera delivered nothing usable in time."""
 
 
-async def wait_frame(tap: FrameTap, after_ns: int, timeout_s: float) -> Frame:
-    """The first frame stamped after `after_ns`; NoFramesError after `timeout_s`."""
+async def wait_frame(
+    tap: FrameTap, after_ns: int, timeout_s: float, on_poll: Callable[[], None] | None = None
+) -> Frame:
+    """The first frame stamped after `after_ns`; NoFramesError after `timeout_s`. `on_poll`
+    is called at every look (e.g. to read the head while it stands waiting)."""
     deadline = time.monotonic() + timeout_s
     while True:
+        if on_poll is not None:
+            on_poll()
         frame = tap.latest()
         if frame is not None and frame.exposure_ns > after_ns and frame.image.size > 16:
             return frame

@@ -193,10 +193,14 @@ def judge_head(
     )
 
 
-def head_rig_update(outcome: HeadOutcome, board_surveyed: bool) -> dict[str, Any]:
+def head_rig_update(
+    outcome: HeadOutcome, board_surveyed: bool, home_sigma_mm: float = 0.0
+) -> dict[str, Any]:
     """`head.m_cr` (and `track.placement` when the board's world pose was surveyed), and the
     joint `covariance` of what was solved together: M_cr, the placement and the intrinsics the
-    solve took as known (a focal length off moves the camera along its axis)."""
+    solve took as known (a focal length off moves the camera along its axis), and the zero
+    (`track.home`, σ `home_sigma_mm`) its views' arc lengths were counted from: the placement
+    took up its error, and the overlay, whose arc lengths carry the same, sees it cancel."""
     res = outcome.result
     if res is None or not outcome.passed:
         raise ValueError("only a passing calibration is written")
@@ -215,6 +219,11 @@ def head_rig_update(outcome: HeadOutcome, board_surveyed: bool) -> dict[str, Any
         cross[("head.m_cr", "camera.intrinsics")] = res.camera_cross[:6]
         if board_surveyed:
             cross[("track.placement", "camera.intrinsics")] = res.camera_cross[6:]
+    if res.home_cross is not None and home_sigma_mm > 0.0:
+        blocks["track.home"] = np.array([[home_sigma_mm**2]])
+        cross[("head.m_cr", "track.home")] = res.home_cross[:6, None]
+        if board_surveyed:
+            cross[("track.placement", "track.home")] = res.home_cross[6:, None]
     if len(blocks) > 1:
         updates["covariance"] = joint_covariance(blocks, cross, prov)
     return updates

@@ -20,10 +20,12 @@ import numpy as np
 from host.calibration.board import BoardDetector, Detection
 from host.calibration.intrinsics import IntrinsicsResult, calibrate_with_rejection
 from host.commissioning import coverage
+from host.commissioning.head_noise import angle_noise_update
 from host.commissioning.motion import RigIO
 from host.commissioning.plan import ViewTarget
 from host.commissioning.report import Page, per_view_figure, residual_figure, text_table
 from host.geometry.camera import CameraModel
+from host.geometry.transforms import FloatArray
 from host.rig import INTRINSIC_KEYS, Intrinsics, Provenance
 
 RETAKES = 2
@@ -58,6 +60,8 @@ class CapturedView:
     attempts: int = 0
     s_mm: float = float("nan")  # where the host saw the trolley and the head at the frame
     head_rad: tuple[float, float] = (float("nan"), float("nan"))
+    # the head's readings (n, 2) while it stood for the frame (its read noise is measured)
+    rest_head_rad: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass
@@ -131,6 +135,7 @@ async def capture(
                 s_mm = io.s_mm(snap)
                 view.s_mm = float("nan") if s_mm is None else s_mm
                 view.head_rad = (float(head[0]), float(head[1]))
+                view.rest_head_rad = io.rest_head_rad
                 search = _search(view, frame.image, attempt, detector, nominal)
                 searches.append(asyncio.create_task(search))
                 searches[-1].add_done_callback(lambda _: _show(views, progress))
@@ -233,7 +238,9 @@ def _checks(res: IntrinsicsResult, limits: Thresholds) -> tuple[bool, list[str]]
 
 
 def rig_update(outcome: Outcome) -> dict[str, Any]:
-    """The rig-file block a passing run writes: `camera.intrinsics` with σ, covariance, origin."""
+    """The rig-file blocks a passing run writes: `camera.intrinsics` with σ, covariance, origin,
+    and `head.angle_noise` measured from the head's readings at the views' rests (the error
+    budget and `calibrate head` use it; the datasheet's stays with too few readings)."""
     res = outcome.result
     if res is None or not outcome.passed:
         raise ValueError("only a passing calibration is written")
@@ -245,7 +252,11 @@ def rig_update(outcome: Outcome) -> dict[str, Any]:
     views = len(res.per_view_rms_px)
     prov = Provenance.now("calibrate intrinsics (ChArUco, skew refined)", res.rms_px, "px", views)
     cov_t = tuple(tuple(float(x) for x in row) for row in cov)
-    return {"camera.intrinsics": Intrinsics(values, sigma, cov_t, prov)}
+    rests = [v.rest_head_rad for v in outcome.views if len(v.rest_head_rad)]
+    return {
+        "camera.intrinsics": Intrinsics(values, sigma, cov_t, prov),
+        **angle_noise_update(rests, len(rests)),
+    }
 
 
 def page(outcome: Outcome, limits: Thresholds) -> Page:

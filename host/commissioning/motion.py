@@ -16,13 +16,16 @@ import asyncio
 import math
 import time
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
+
+import numpy as np
 
 from host.commissioning.frames import FrameTap, wait_frame
 from host.commissioning.plan import ViewTarget
 from host.control.api import ControllerLike
 from host.frames.sources import Frame
+from host.geometry.transforms import FloatArray
 
 POSITION_TOL_MM = 0.5
 HEAD_TOL_RAD = 2e-3
@@ -51,6 +54,8 @@ class RigIO:
     settle_s: float = SETTLE_S
     head_settle_s: float = HEAD_SETTLE_S
     home_s_mm: float = 0.0  # plans speak track arc length; the controller, its own zero
+    # the head's readings (n, 2) while it stood waiting for the last frame grabbed
+    rest_head_rad: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))
 
     def s_mm(self, snap: Mapping[str, Any]) -> float | None:
         """Track arc length of the trolley in a snapshot (encoder plus the surveyed home)."""
@@ -87,9 +92,19 @@ class RigIO:
         await asyncio.sleep(rest_s - time.monotonic())
 
     async def grab(self) -> Frame:
-        """A frame exposed after the rig came to rest."""
+        """A frame exposed after the rig came to rest; the head's readings while it stood
+        waiting for it are kept in `rest_head_rad` (its read noise: commissioning.head_noise)."""
         after_ns = time.monotonic_ns() + round(STAMP_MARGIN_S * 1e9)
-        return await wait_frame(self.frames, after_ns, FRAME_TIMEOUT_S)
+        readings: list[tuple[float, float]] = []
+
+        def read_head() -> None:
+            head = self.controller.snapshot().get("head_rad")
+            if head:
+                readings.append((float(head[0]), float(head[1])))
+
+        frame = await wait_frame(self.frames, after_ns, FRAME_TIMEOUT_S, read_head)
+        self.rest_head_rad = np.array(readings, dtype=np.float64).reshape(-1, 2)
+        return frame
 
     async def _until(self, ok: Any, timeout_s: float, what: str) -> None:
         """Poll the snapshot until ok(snapshot); AbortedError on halt or timeout."""

@@ -139,7 +139,13 @@ async def op_calibrate_intrinsics(ctx: OpContext, args: Mapping[str, Any]) -> An
     ) -> tuple[dict[str, Any], Page, dict[str, Any]]:
         out = intrinsics_run.judge(views, camera, limits, full)
         updates = intrinsics_run.rig_update(out) if out.passed else {}
-        return out.summary(), intrinsics_run.page(out, limits), updates
+        summary = out.summary()
+        if "head.angle_noise" in updates:  # measured at the views' rests
+            noise = updates["head.angle_noise"]
+            summary["head_noise_rad"] = noise.sigma
+            summary["reasons"] = [*summary["reasons"], f"head read noise {noise.sigma:.2g} rad "
+                                  f"({noise.provenance.note})"]  # fmt: skip
+        return summary, intrinsics_run.page(out, limits), updates
 
     return _start_capture_run(ctx, args, "intrinsics", centre, finish)
 
@@ -265,7 +271,7 @@ async def op_calibrate_head(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         out = head_run.judge_head(
             views, rig, camera, T_w_b, cov_b, limits, env.camera_cov(), home_sigma, head_sigma
         )
-        updates = head_run.head_rig_update(out, True) if out.passed else {}
+        updates = head_run.head_rig_update(out, True, home_sigma) if out.passed else {}
         return out.summary(), head_run.head_page(out, limits), updates
 
     return _start_capture_run(

@@ -28,6 +28,7 @@ UPDATABLE = (
     "track.marks",
     "hall",
     "head.m_cr",
+    "head.angle_noise",
     "rangefinder.mount",
     "camera.intrinsics",
     "camera.latency",

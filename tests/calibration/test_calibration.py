@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -108,6 +110,29 @@ def test_handeye_sigma_is_what_it_achieves(seed: int) -> None:
     sig_k = np.sqrt(np.diag(res.track_covariance))
     assert np.all(np.abs(err_m) < 3 * sig_m), (err_m, sig_m)
     assert np.all(np.abs(err_k) < 3 * sig_k), (err_k, sig_k)
+
+
+def test_handeye_moves_with_the_zero_as_its_cross_term_says() -> None:
+    """Every view's arc length off by the same δs (the zero's error): the solution moves by
+    home_cross / σ² · δs, which the rig file's cross terms with `track.home` carry (on the
+    straight the board is seen from, the placement takes it up along the track)."""
+    rig = Rig()
+    T_w_b = make_T(rot_z(0.3), [-200.0, -1400.0, 0.0])
+    views = handeye_views(rig, T_w_b, 15, seed=4)
+    local = rig.track.with_origin(np.eye(4))
+    sigma, ds = 5.0, 0.5
+    exact = calibrate_handeye(views, local, CameraModel(), T_w_b=T_w_b, home_sigma_mm=sigma)
+    shifted = [dataclasses.replace(v, s_mm=v.s_mm + ds) for v in views]
+    off = calibrate_handeye(shifted, local, CameraModel(), T_w_b=T_w_b, home_sigma_mm=sigma)
+    assert exact.home_cross is not None
+    moved = np.concatenate(
+        [local_error(exact.M_cr, off.M_cr), local_error(exact.T_b_track, off.T_b_track)]
+    )
+    predicted = exact.home_cross / sigma**2 * ds
+    assert np.allclose(moved, predicted, atol=0.03 * np.abs(predicted).max()), (moved, predicted)
+    assert np.abs(predicted[9:]).max() > 0.5 * ds  # the placement takes most of it up
+    # and its variance is in the covariance: Cov(x, s)² ≤ Var(x) σ² (Cauchy-Schwarz)
+    assert np.all(exact.home_cross**2 <= np.diag(exact.covariance) * sigma**2 * (1 + 1e-9))
 
 
 def local_error(est: np.ndarray, truth: np.ndarray) -> np.ndarray:

@@ -7,7 +7,12 @@ does what `calibrate intrinsics` and `calibrate head` do, without the daemon: th
 the synthetic camera and detected, `calibrate_with_rejection`, `calibrate_handeye` with the
 intrinsics' covariance, and the rig-file updates those runs write (`rig_update`,
 `head_rig_update`), read back through the TOML codec. The host's arc length is off by the home
-survey's error (the same in calibration and later); head angles read with the datasheet noise.
+survey's error (the same in calibration and later). As in the demo, the head run solves the
+intrinsics run's own views, and the head reads as the simulator's plant does (`PLANT_HEAD`: it
+stands on a count of its encoder and reads it, noise crossing half a count now and then); its
+read noise in the rig file is measured from the readings at each rest
+(host.commissioning.head_noise), as `calibrate intrinsics` does. `DATASHEET_HEAD` is the
+bench's former head: every reading off by the datasheet's σ.
 
 `overlay_errors` is the truth's side: the overlay of the model's points as the commissioned rig
 draws them minus where the true rig shows them, at (s, pan, tilt) poses aimed by the host.
@@ -22,11 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil_sim.camera import SyntheticCamera
+from hil_sim.scenario import HeadConfig
 from hil_sim.true_rig import true_rig
 from host.calibration.board import BoardDetector
 from host.calibration.handeye import HandEyeView, adjoint, calibrate_handeye
 from host.calibration.intrinsics import calibrate_with_rejection
 from host.commissioning import targets_run
+from host.commissioning.head_noise import angle_noise_update
 from host.commissioning.head_run import HeadOutcome, head_rig_update
 from host.commissioning.intrinsics_run import Outcome, rig_update
 from host.commissioning.plan import IMAGE_TARGETS, board_plan
@@ -55,6 +62,7 @@ from host.rig import (
     Pose6,
     Provenance,
     RigSpec,
+    Scalar,
     build_camera,
     build_kinematics,
     covariance_over,
@@ -63,9 +71,40 @@ from host.rig import (
     with_block,
     with_updates,
 )
+from host.rig.schema import HEAD_ANGLE_SIGMA_RAD
 
 WORKPIECE_SURVEY_RAD = 1e-3  # an independent total-station survey of the workpiece frame
 WORKPIECE_SURVEY_MM = 1.0
+REST_READINGS = 10  # head readings per rest (about what a board view's wait for its frame sees)
+
+
+@dataclass(frozen=True)
+class SimHead:
+    """How the simulated head stands and reads: servo targets and readings on a count of
+    `resolution_rad` (0: continuous), readings with `noise_rad` before that rounding."""
+
+    noise_rad: float
+    resolution_rad: float = 0.0
+
+    def stand(self, commanded: float) -> float:
+        """Where the head truly stands when commanded to an angle."""
+        return _round(commanded, self.resolution_rad)
+
+    def read(self, true: float, rng: np.random.Generator) -> float:
+        """One reading of the angle it stands at."""
+        return _round(true + float(rng.normal(0.0, self.noise_rad)), self.resolution_rad)
+
+    def rest(self, true: FloatArray, rng: np.random.Generator, n: int) -> FloatArray:
+        """n readings (n, 2) of pan and tilt standing at `true`."""
+        return np.array([[self.read(float(a), rng) for a in true] for _ in range(n)])
+
+
+def _round(x: float, res: float) -> float:
+    return x if res <= 0.0 else round(x / res) * res
+
+
+PLANT_HEAD = SimHead(HeadConfig().noise_rad, HeadConfig().resolution_rad)  # hil_sim's plant
+DATASHEET_HEAD = SimHead(HEAD_ANGLE_SIGMA_RAD)  # every reading off by the datasheet's σ
 
 
 @dataclass(frozen=True)
@@ -76,7 +115,7 @@ class Commissioned:
     truth: RigSpec
     host: RigSpec
     home_error_mm: float  # host s − true s
-    head_sigma_rad: float
+    head: SimHead  # how the simulated head stands and reads
     T_w_b_true: FloatArray
     T_w_b_surveyed: FloatArray
 
@@ -86,8 +125,18 @@ def commission(
     workpiece_surveyed: bool = True,
     projected_noise_px: float | None = None,
     head_noise_modelled: bool = True,
+    head: SimHead = PLANT_HEAD,
+    reuse_views: bool = True,
+    measure_head: bool = True,
+    home_sigma_mm: float | None = None,
 ) -> Commissioned:
     """Draw the rig, calibrate intrinsics then head on rendered views, write the rig file.
+
+    `head`: how the simulated head stands and reads; `measure_head`: the rig file's head noise
+    measured from the readings at rest (else the datasheet's); `reuse_views`: the head run
+    solves the intrinsics run's views (as the demo), else views taken again; `home_sigma_mm`:
+    the zero's σ (default the drawing's 1 mm; the demo's first home survey has ~5 mm, whose
+    few draws would then dominate the far side of the loop in a handful of rigs).
 
     `projected_noise_px`: instead of rendering and detecting, the board's corners projected
     through the truth with independent Gaussian noise of that σ per axis (the solvers' own
@@ -98,8 +147,11 @@ def commission(
     rigs = DemoRigs(nominal, truth, nominal, True)
     setup = place_board(rigs, seed)
     rng = np.random.default_rng([seed, 0xB0D6E7])
-    home_err = float(rng.normal(0.0, nominal.track.home.sigma))
-    head_sig = nominal.head.angle_noise.sigma
+    # the zero off by its survey's σ (the drawing's, or as given), in the rig file and passed to
+    # the head run, whose placement takes it up (and writes the cross terms of it)
+    home_sig = nominal.track.home.sigma if home_sigma_mm is None else home_sigma_mm
+    home_err = float(rng.normal(0.0, home_sig))
+    home = Scalar(nominal.track.home.value, home_sig, Provenance.now("survey home (simulated)"))
     host_rig, host_cam = build_kinematics(nominal), build_camera(nominal)
     true_kin, true_cam = build_kinematics(truth), build_camera(truth)
     s0 = setup.s_mm
@@ -113,12 +165,15 @@ def commission(
     T_w_b = setup.placed.T_w_b
     corners = np.asarray(setup.placed.board.getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
 
+    rests: list[FloatArray] = []
+
     def capture() -> list[HandEyeView]:
         out = []
         for v in plan:
             # the host commands s as it knows it: the trolley stands home_err short of it
             s_true = v.s_mm - home_err
-            T_c_b = invert_T(true_kin.T_w_c(s_true, v.pan_rad, v.tilt_rad)) @ T_w_b
+            stood = np.array([head.stand(v.pan_rad), head.stand(v.tilt_rad)])
+            T_c_b = invert_T(true_kin.T_w_c(s_true, *stood)) @ T_w_b
             if projected_noise_px is None:
                 found = det.detect(sim.render_board(T_c_b, setup.placed.board).image)
                 if found is None:
@@ -128,8 +183,9 @@ def commission(
                 obj = corners
                 img, _ = true_cam.project_world(T_c_b, obj)
                 img = img + rng.normal(0.0, projected_noise_px, img.shape)
-            pan, tilt = (a + float(rng.normal(0.0, head_sig)) for a in (v.pan_rad, v.tilt_rad))
-            out.append(HandEyeView(v.s_mm, pan, tilt, obj, img))
+            rest = head.rest(stood, rng, REST_READINGS)  # waiting for the frame
+            rests.append(rest)
+            out.append(HandEyeView(v.s_mm, float(rest[-1, 0]), float(rest[-1, 1]), obj, img))
         return out
 
     intr_views = capture()
@@ -137,19 +193,24 @@ def commission(
         [v.object_points for v in intr_views], [v.image_points for v in intr_views], true_cam.size
     )
     spec = with_updates(nominal, rig_update(Outcome(True, [], [], res, host_cam)))
+    spec = with_updates(spec, {"track.home": home})
+    if measure_head:
+        spec = with_updates(spec, angle_noise_update(rests, len(rests)))
+    head_sig = spec.head.angle_noise.sigma
     cam_cov = np.array(spec.camera.intrinsics.covariance)
     cov_b = np.diag([BOARD_SURVEY_SIGMA_RAD**2] * 3 + [BOARD_SURVEY_SIGMA_MM**2] * 3)
-    head = calibrate_handeye(
-        capture(), host_rig.track, res.camera, host_rig.T_t_r, setup.T_w_b_surveyed, cov_b,
-        cam_cov, head_sig if head_noise_modelled else 0.0,
+    solved = calibrate_handeye(
+        intr_views if reuse_views else capture(), host_rig.track, res.camera, host_rig.T_t_r,
+        setup.T_w_b_surveyed, cov_b, cam_cov, head_sig if head_noise_modelled else 0.0, home_sig,
     )  # fmt: skip
-    spec = with_updates(spec, head_rig_update(HeadOutcome(True, [], [], head), True))
+    outcome = HeadOutcome(True, [], [], solved)
+    spec = with_updates(spec, head_rig_update(outcome, True, home_sig))
     if workpiece_surveyed:
         spec = with_updates(spec, {"workpiece.frame": surveyed_workpiece(truth, rng)})
     else:  # the workpiece frame exact: the budget of the rig alone
         spec = with_updates(spec, {"workpiece.frame": Pose6(truth.workpiece.frame.matrix)})
     host = loads_rig(dumps_rig(spec))  # as the daemon reads it
-    return Commissioned(seed, truth, host, home_err, head_sig, T_w_b, setup.T_w_b_surveyed)
+    return Commissioned(seed, truth, host, home_err, head, T_w_b, setup.T_w_b_surveyed)
 
 
 def surveyed_workpiece(truth: RigSpec, rng: np.random.Generator) -> Pose6:
@@ -187,10 +248,11 @@ def overlay_errors(
     out = []
     for s, pan, tilt in poses:
         s_true = s - c.home_error_mm
-        read = (pan + rng.normal(0.0, c.head_sigma_rad), tilt + rng.normal(0.0, c.head_sigma_rad))
+        stood = (c.head.stand(pan), c.head.stand(tilt))
+        read = (c.head.read(stood[0], rng), c.head.read(stood[1], rng))
         drawn, _ = host_cam.project_world(invert_T(host_kin.T_w_c(s, *read)) @ T_w_p_host, points_p)
         true, _ = true_cam.project_world(
-            invert_T(true_kin.T_w_c(s_true, pan, tilt)) @ T_w_p_true, points_p
+            invert_T(true_kin.T_w_c(s_true, *stood)) @ T_w_p_true, points_p
         )
         out.append(drawn - true)
     return out
@@ -252,10 +314,10 @@ def camera_surveyed_workpiece(c: Commissioned) -> Commissioned:
     T_w_p_true = c.truth.workpiece.frame.matrix
     for v in views:
         t = v.target
-        T_w_c = true_kin.T_w_c(t.s_mm - c.home_error_mm, t.pan_rad, t.tilt_rad)
+        stood = (c.head.stand(t.pan_rad), c.head.stand(t.tilt_rad))
+        T_w_c = true_kin.T_w_c(t.s_mm - c.home_error_mm, *stood)
         img = sim.render_scene(T_w_c, model, T_w_p_true, targets_p=features).image
-        read = (t.pan_rad + rng.normal(0.0, c.head_sigma_rad),
-                t.tilt_rad + rng.normal(0.0, c.head_sigma_rad))  # fmt: skip
+        read = (c.head.read(stood[0], rng), c.head.read(stood[1], rng))
         v.s_mm, v.head_rad = t.s_mm, read
         uv, _ = host_cam.project(transform_points(host_kin.T_c_w(t.s_mm, *read), rough))
         for k in v.wanted:

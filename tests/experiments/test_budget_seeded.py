@@ -13,6 +13,7 @@ import pytest
 
 from host.geometry.model import manipulator_wireframe
 from host.geometry.transforms import FloatArray
+from host.rig.schema import HEAD_ANGLE_SIGMA_RAD
 from tests.experiments.seeded_rigs import (
     Commissioned,
     board_relative_workpiece,
@@ -38,9 +39,10 @@ def _ratios(meas: FloatArray, pred: FloatArray) -> FloatArray:
 
 @pytest.mark.slow
 def test_predicted_overlay_sigma_within_30_percent_of_measured(rigs: list[Commissioned]) -> None:
-    for c in rigs:  # what calibrate head wrote: the joint block over all three, read back
+    for c in rigs:  # what calibrate head wrote: the joint block over all four, read back
         assert c.host.covariance is not None
-        assert set(c.host.covariance.names) == {"head.m_cr", "track.placement", "camera.intrinsics"}
+        names = {"head.m_cr", "track.placement", "camera.intrinsics", "track.home"}
+        assert set(c.host.covariance.names) == names
     points = manipulator_wireframe().vertices
     meas, pred = predicted_and_measured(rigs, OFFSETS_MM, points)
     assert np.isfinite(meas).all()
@@ -87,3 +89,22 @@ def test_a_camera_surveyed_workpiece_is_predicted_within_30_percent(
     with_cross, without = _ratios(meas, pred), _ratios(meas, plain)
     assert np.all((with_cross > 0.7) & (with_cross < 1.3)), with_cross
     assert np.all(without > 2.0), without
+
+
+@pytest.mark.slow
+def test_the_datasheet_head_noise_over_predicts_a_head_that_reads_at_rest(
+    rigs: list[Commissioned],
+) -> None:
+    """The head stands on a count and reads it (the simulator's plant): its read noise, as
+    measured at the rests, is a fraction of the datasheet's, and a rig file that kept the
+    datasheet's over-predicted the demo's static overlay (issue 11: 2-6× on seeds 1-3). The
+    same rigs with the datasheet's σ: the budget is beyond +30 % at the demo's observation
+    points; with the measured σ within ±30 % (the test above)."""
+    for c in rigs:
+        noise = c.host.head.angle_noise
+        assert noise.provenance.method.startswith("measured at rest")
+        assert 0.0 < noise.sigma < 0.6 * HEAD_ANGLE_SIGMA_RAD
+    datasheet = [camera_surveyed_workpiece(commission(c.seed, measure_head=False)) for c in rigs]
+    points = manipulator_wireframe().vertices
+    meas, pred = predicted_and_measured(datasheet, OFFSETS_MM[:2], points)
+    assert np.all(_ratios(meas, pred) > 1.3), _ratios(meas, pred)

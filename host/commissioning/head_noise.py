@@ -1,0 +1,61 @@
+"""The head's angle read noise, measured: the scatter of its reported angles while it stands.
+
+The error budget needs how far a head reading is from the angle the head truly stands at. A
+datasheet gives a bound (resolution and noise in quadrature), but a head whose servos close on
+the same encoder it reads stands on a count and reads that count, except when the noise crosses
+half a count: at rest it reads far better than the bound. Commissioning measures it: at every
+rest of a board run (the head still, waiting for a frame) the readings' scatter about their
+mean, pooled over the rests and both axes. Readings that never moved prove only that the
+noise seldom crosses a count: one step is then counted (the smallest seen, or the datasheet's
+resolution when none moved), so a quiet head is never written as exact.
+
+What this does not see is an error that stays put while the head stands (a servo resting
+between counts): the hand-eye residual and `calibrate check` judge those.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from host.geometry.transforms import FloatArray
+from host.rig import Provenance, Scalar
+from host.rig.schema import HEAD_RESOLUTION_RAD
+
+MIN_READINGS = 40  # over all rests and both axes, or the datasheet's value is kept
+REPORTED_RESOLUTION_RAD = 1e-5  # the snapshot's head angles (5 digits): smaller is no step
+METHOD = "measured at rest (scatter of the head's readings)"
+
+
+def read_noise(rests: Sequence[FloatArray]) -> tuple[float, int] | None:
+    """(σ rad, readings) pooled over the rests ((n, 2) pan/tilt each), or None with too few."""
+    sq, dof, readings = 0.0, 0, 0
+    steps: list[float] = []
+    for r in rests:
+        a = np.asarray(r, dtype=np.float64).reshape(-1, 2)
+        a = a[np.isfinite(a).all(axis=1)]
+        if len(a) < 2:
+            continue
+        dev = a - a.mean(axis=0)
+        sq += float(np.sum(dev * dev))
+        dof += 2 * (len(a) - 1)
+        readings += 2 * len(a)
+        moved = np.abs(np.diff(a, axis=0))
+        steps += [float(x) for x in moved[moved > 0.5 * REPORTED_RESOLUTION_RAD]]
+    if readings < MIN_READINGS or dof == 0:
+        return None
+    floor = min(steps) if steps else HEAD_RESOLUTION_RAD
+    return math.sqrt(max(sq, floor * floor) / dof), readings
+
+
+def angle_noise_update(rests: Sequence[FloatArray], views: int) -> dict[str, Scalar]:
+    """`head.angle_noise` as measured over the rests ({} with too few readings)."""
+    got = read_noise(rests)
+    if got is None:
+        return {}
+    sigma, n = got
+    note = f"{n} readings over {views} rests; a head resting between counts is not seen"
+    prov = Provenance.now(METHOD, sigma, "rad", views, note)
+    return {"head.angle_noise": Scalar(0.0, sigma, prov)}
