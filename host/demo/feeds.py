@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from host.fusion.chain_filter import ChainFilter
+from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
 from host.registration.track_feed import PoseFeed
@@ -21,7 +21,10 @@ HEAD_CAPACITY = 2048
 
 
 def _feed(
-    marks_mm: tuple[float, ...], pitch_mm: float, ranger: RangeFixer | None = None
+    marks_mm: tuple[float, ...],
+    pitch_mm: float,
+    ranger: RangeFixer | None = None,
+    config: ChainFilterConfig | None = None,
 ) -> PoseFeed:
     """A PoseFeed with buffers sized for the demo's longest lookups, horizons as the daemon's."""
     return PoseFeed(
@@ -30,6 +33,7 @@ def _feed(
         marks_mm=marks_mm,
         pitch_mm=lambda: pitch_mm,
         ranger=ranger,
+        chain=None if config is None else ChainFilter(config),
     )
 
 
@@ -40,12 +44,13 @@ class TrackFeed:
     marks_mm: tuple[float, ...] = ()
     pitch_mm: float = 12.7
     ranger: RangeFixer | None = None
+    config: ChainFilterConfig | None = None  # the filter's (the rig file's marks σ)
     encoder_only: PoseFeed = field(init=False)
     corrected: PoseFeed = field(init=False)
 
     def __post_init__(self) -> None:
         self.encoder_only = _feed((), self.pitch_mm)
-        self.corrected = _feed(self.marks_mm, self.pitch_mm, self.ranger)
+        self.corrected = _feed(self.marks_mm, self.pitch_mm, self.ranger, self.config)
 
     @property
     def raw(self) -> SampleBuffer:

@@ -44,7 +44,8 @@ from host.demo.scoring import true_zero_mm
 from host.demo.world import SimCameraSource, SimWorld
 from host.experiments.budget import inputs_from_rig, overlay_sigma
 from host.frames.loop import FrameLoop
-from host.fusion.range_fix import RangeFixConfig, RangeFixer
+from host.fusion import rig_references
+from host.fusion.rig_references import chain_config
 from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
 from host.rig import RigError, RigSpec, build_scene, load_rig, save_rig
@@ -180,8 +181,9 @@ async def _experiments(
     ctrl = Controller(world.host_transport())
     scene = build_scene(rigs.host)
     rf = rigs.host.rangefinder
-    ranger = None if scene is None else RangeFixer(rig, scene, RangeFixConfig(noise_mm=rf.noise_mm))
-    feed = TrackFeed(rigs.host.track.marks.s_mm, world.sim.scenario.chain.pitch_mm, ranger)
+    ranger = rig_references.ranger(rigs.host, rig)  # the references with the rig file's σ
+    pitch = world.sim.scenario.chain.pitch_mm
+    feed = TrackFeed(rigs.host.track.marks.s_mm, pitch, ranger, chain_config(rigs.host, pitch))
     ctrl.add_sink(feed)
     ranges = RangeTap()
     ctrl.add_sink(ranges)
