@@ -445,6 +445,8 @@ async def drift_experiment(
     await bench.point_head(LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD)
     start_enc = bench.feed.last_enc_mm or bench.feed.home_s_mm
     marks_before = bench.feed.marks_seen
+    ranger = bench.feed.corrected.ranger
+    range_before = dict(vars(ranger.stats)) if ranger else {}
     raw_scores: list[Score] = []
     fused_scores: list[Score] = []
     world_scores: list[Score] = []  # the fused pose against the world frame (probe on the axis)
@@ -496,13 +498,16 @@ async def drift_experiment(
     finally:
         bench.collector.sink = None
     pitch_px = world.sim.scenario.chain.pitch_mm * bench.camera.fx / PROBE_DEPTH_MM
-    ranger = bench.feed.corrected.ranger
     return {
         "elongation": plan.elongation,
         "tooth_skips": len(plan.skips_at_fraction),
         "marks_seen": bench.feed.marks_seen - marks_before,
         "references_used": bench.feed.chain.stats.updates,
         "range_fixes": ranger.stats.fixes if ranger else 0,
+        # what the loop's readings became (fixes, and refusals by reason)
+        "range_loop": {k: v - range_before[k] for k, v in vars(ranger.stats).items()}
+        if ranger
+        else {},
         "skips_detected": bench.feed.chain.stats.skips_detected,
         "scale_estimate": float(bench.feed.chain.x[1]),
         "clock_sync_error_us": summary([abs(e) for e in clock_errors_us]),

@@ -25,6 +25,8 @@ from host.commissioning.frames import RangeTap
 from host.demo.commissioning_phase import feature_points, make_commissioner, place_board
 from host.demo.daemon_phase import running_daemon
 from host.demo.experiments import (
+    LOOK_AHEAD_PAN_RAD,
+    LOOK_AHEAD_TILT_RAD,
     Bench,
     MovingRobot,
     Plan,
@@ -225,6 +227,9 @@ async def _experiments(
         reference = await survey_home(bench)  # the drift's re-homing is compared with this
         bench.home_reference_mm = (rigs.host.track.home.value if surveyed else reference, reference)
         feed.set_home(bench.home_reference_mm[0])
+        if (ranger := feed.corrected.ranger) is not None:  # fixes relative to this survey
+            zero = bench.home_reference_mm[0]
+            ranger.anchor_at(zero, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD, reference)
         await wait_still(bench)
         bench.home_truth_mm = true_zero_mm(world)  # scoring only
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}

@@ -10,13 +10,14 @@ s; one along the track at an end wall says everything). Everything refused is co
 The model itself is only known as well as the rig file says: the mount, the track's placement
 and each surface's survey carry a σ. Their error is a bias shared by every reading from the
 same geometry, which no number of readings averages away, so it is kept apart (`Systematic`)
-from the reading's noise. The controller's zero was surveyed through the same model (`anchor`):
-a fix is taken relative to that survey, so the part of the bias both share (the same wall, the
-same aim: a straight) cancels and only the difference counts. A surface first met later (the
-side wall past a corner, surveyed apart from the end wall) is anchored on arrival against the
-filter's dead reckoning, over a run of fixes from one geometry, and used relative to that. A fix
-whose remaining bias exceeds `max_systematic_mm` is refused: it would pull the filter off by
-more than the dead reckoning it replaces (on a corner, an uncalibrated mount's mrad are mm).
+from the reading's noise: a fix carries its sensitivity to those parameters (`gradient`), and
+the chain filter holds them as states (host.fusion.chain_filter) and weighs every fix with the
+correlation it has with the others. The controller's zero was surveyed through the same model
+(`anchor_at`): a fix is taken relative to that survey, so the part of the bias both share (the
+same wall, the same aim) cancels, and its gradient is the difference of the two. Nothing is
+refused for its bias: a fix from a geometry the rig file knows poorly (an uncalibrated mount on
+a corner) only counts for less, and a surface first met later (the side wall past a corner,
+surveyed apart from the end wall) is learnt against the dead reckoning as its fixes arrive.
 """
 
 from __future__ import annotations
@@ -37,7 +38,6 @@ MAX_PASSES = 4  # Gauss-Newton passes; a skip of a few teeth on a corner converg
 # Below this step the slope at the prediction serves: on the tightest corner (1 m radius) the
 # slope changes by well under 1 % per millimetre, so the step is right to a few µm.
 RELINEARISE_MM = 1.0
-ANCHOR_FIXES = 40  # fixes that anchor a newly met surface (0.2 s at 200 Hz; σ/√40 of a reading)
 
 
 @dataclass(frozen=True)
@@ -50,8 +50,6 @@ class RangeFixConfig:
     max_incidence_deg: float = 70.0  # beam to surface normal: steeper and the spot smears
     clearance_mm: float = 150.0  # the next surface along the beam must be at least this far on
     gate_mm: float = 60.0  # |s - prediction| beyond this is not this surface (3 teeth fit)
-    # the model's bias a fix may carry (σ, relative to the zero's survey): ~0.4 px at 3 m
-    max_systematic_mm: float = 0.3
 
 
 @dataclass(frozen=True)
@@ -81,12 +79,11 @@ class Systematic:
 
 @dataclass(frozen=True)
 class Anchor:
-    """Where one surface's fixes sit in the rig's arc lengths: `offset_mm` from them (σ), with
-    this sensitivity of the fix to the model's blocks where the offset was measured."""
+    """The zero's survey: `offset_mm` from the rig's arc lengths to the fixes', and the survey's
+    sensitivity to the model's parameters (fixes are taken relative to it)."""
 
     offset_mm: float
-    gradient: FloatArray
-    sigma_mm: float = 0.0
+    gradient: FloatArray | None  # None: the model taken as exact
 
 
 @dataclass
@@ -100,8 +97,6 @@ class RangeFixStats:
     ambiguous: int = 0
     weak: int = 0
     out_of_gate: int = 0
-    biased: int = 0  # the model's bias there (beyond the zero's) exceeds max_systematic_mm
-    anchoring: int = 0  # taken to anchor a surface first met after the zero's
     off_track: int = 0  # the inversion would leave an open track's ends
     unconverged: int = 0
 
@@ -111,9 +106,16 @@ class RangeFix:
     """True arc length implied by one reading, its σ, and the surface it came from."""
 
     s_mm: float
-    sigma_mm: float  # the reading's and the model's
+    sigma_mm: float  # the reading's own (noise, head angles)
     surface: str
-    systematic_mm: float = 0.0  # of sigma_mm, the model's (shared by neighbouring fixes)
+    systematic_mm: float = 0.0  # σ of the model's bias in s_mm (shared by neighbouring fixes)
+    # ∂s_mm/∂(the model's parameters, `Systematic` order); None: the model taken as exact
+    gradient: FloatArray | None = None
+
+    @property
+    def total_sigma_mm(self) -> float:
+        """The reading's σ and the model's together, for a filter that cannot hold the bias."""
+        return math.hypot(self.sigma_mm, self.systematic_mm)
 
 
 @dataclass
@@ -126,26 +128,18 @@ class RangeFixer:
     stats: RangeFixStats = field(default_factory=RangeFixStats)
     systematic: Systematic | None = None  # None: the model taken as exact
     anchor: Anchor | None = None  # the zero's survey; None: fixes in the model's arc lengths
-    anchors: dict[int, Anchor] = field(default_factory=dict)  # per surface (scene index)
-    # fixes gathered on a surface not anchored yet: (surface, first gradient, offsets)
-    _gathering: tuple[int, FloatArray, list[float]] | None = None
 
     def anchor_at(
         self, zero_s_mm: float, pan_rad: float, tilt_rad: float, surveyed_mm: float
     ) -> None:
         """The rig's zero, at `zero_s_mm` in its arc lengths, was surveyed through this model
-        from these head angles as `surveyed_mm`: take later fixes relative to that survey.
-
-        Other surfaces are anchored as the trolley reaches them (`fix`): their survey's error
-        relative to this one's is no smaller than the bias a fix may carry."""
+        from these head angles as `surveyed_mm`: take later fixes relative to that survey."""
         slope = self._slope(surveyed_mm, pan_rad, tilt_rad)
         gradient = (
-            np.zeros(0) if slope is None or self.systematic is None
+            None if slope is None or self.systematic is None
             else self._gradient(surveyed_mm, pan_rad, tilt_rad, *slope)
         )  # fmt: skip
         self.anchor = Anchor(surveyed_mm - zero_s_mm, gradient)
-        self.anchors = {} if slope is None else {slope[0].surface: self.anchor}
-        self._gathering = None
 
     def fix(
         self, s_pred_mm: float, pan_rad: float, tilt_rad: float, distance_mm: float | None
@@ -178,48 +172,18 @@ class RangeFixer:
         tan_inc = math.sqrt(max(0.0, 1.0 - hit.cos_incidence**2)) / hit.cos_incidence
         sigma_r = math.hypot(c.noise_mm, hit.distance_mm * tan_inc * c.head_sigma_rad)
         name = self.scene.surfaces[hit.surface].name
-        noise = sigma_r / abs(drds)
-        if self.systematic is None:
-            st.fixes += 1
-            return RangeFix(s - offset, noise, name)
-        g = self._gradient(s, pan_rad, tilt_rad, hit, drds)
-        anchor = self.anchors.get(hit.surface)
-        if anchor is None and self.anchor is not None:
-            self._gather(hit.surface, g, s - (s_pred_mm - offset), noise)
-            return None
-        if anchor is not None:
-            g = g - anchor.gradient
-        bias = math.hypot(self._sigma(g), anchor.sigma_mm if anchor else 0.0)
-        if bias > c.max_systematic_mm:
-            st.biased += 1
-            return None
         st.fixes += 1
-        return RangeFix(
-            s - (anchor.offset_mm if anchor else 0.0), math.hypot(noise, bias), name, bias
-        )
+        if self.systematic is None:
+            return RangeFix(s - offset, sigma_r / abs(drds), name)
+        g = self._gradient(s, pan_rad, tilt_rad, hit, drds)
+        if self.anchor is not None and self.anchor.gradient is not None:
+            g = g - self.anchor.gradient
+        return RangeFix(s - offset, sigma_r / abs(drds), name, self._sigma(g), g)
 
     def _sigma(self, g: FloatArray) -> float:
-        """σ of a fix's error from the model's blocks, for its gradient g."""
+        """σ of a fix's error from the model's parameters, for its gradient g."""
         assert self.systematic is not None
         return math.sqrt(max(float(g @ self.systematic.covariance @ g), 0.0))
-
-    def _gather(self, surface: int, g: FloatArray, offset_mm: float, noise_mm: float) -> None:
-        """A surface first met after the zero's (past a corner): its offset from the rig's arc
-        lengths is measured against the filter's prediction (dead reckoning since the last
-        fix) over ANCHOR_FIXES fixes from one geometry, and its fixes are used from then on."""
-        self.stats.anchoring += 1
-        got = self._gathering
-        if (
-            got is None
-            or got[0] != surface
-            or self._sigma(g - got[1]) > self.config.max_systematic_mm
-        ):
-            got = self._gathering = (surface, g, [])
-        got[2].append(offset_mm)
-        if len(got[2]) >= ANCHOR_FIXES:
-            sigma = noise_mm / math.sqrt(len(got[2]))
-            self.anchors[surface] = Anchor(float(np.mean(got[2])), got[1], sigma)
-            self._gathering = None
 
     def _gradient(self, s_mm: float, pan: float, tilt: float, hit: Hit, drds: float) -> FloatArray:
         """∂s_fix/∂(mount δ, placement δ, surface offsets), first order.

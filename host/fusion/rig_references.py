@@ -3,13 +3,16 @@
 A reference is used relative to the controller's zero: the feed adds the rig file's home to the
 encoder's millimetres. A mark's listed arc length and the home were measured apart (the drawing
 or a marks survey; the home survey), so a mark relative to the zero carries both σ. Rangefinder
-fixes carry the rig file's σ of the range model (mount, track placement, surveyed surfaces) as a
-systematic part, relative to the zero's survey once one is anchored (`RangeFixer.anchor_at`).
+fixes rest on the range model (mount, track placement, surveyed surfaces), whose parameters the
+chain filter holds as states with the rig file's σ; fixes are taken relative to the zero's
+survey once one is anchored (`RangeFixer.anchor_at`).
 """
 
 from __future__ import annotations
 
 import math
+
+import numpy as np
 
 from host.fusion.chain_filter import ChainFilterConfig
 from host.fusion.range_fix import RangeFixConfig, RangeFixer, Systematic
@@ -23,8 +26,13 @@ def marks_sigma_mm(spec: RigSpec) -> float:
 
 
 def chain_config(spec: RigSpec, pitch_mm: float) -> ChainFilterConfig:
-    """The chain filter with the rig file's marks σ."""
-    return ChainFilterConfig(chain_pitch_mm=pitch_mm, reference_sigma_mm=marks_sigma_mm(spec))
+    """The chain filter with the rig file's marks σ, and the range model's parameters (their
+    σ from the rig file) as states when it lists surveyed surfaces the fixes rest on."""
+    cov = Systematic.of(spec).covariance
+    bias = cov if spec.hall.surfaces and np.any(cov) else None  # none for an exact model
+    return ChainFilterConfig(
+        chain_pitch_mm=pitch_mm, reference_sigma_mm=marks_sigma_mm(spec), bias_cov=bias
+    )
 
 
 def ranger(spec: RigSpec, rig: Rig) -> RangeFixer | None:
