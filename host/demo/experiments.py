@@ -191,6 +191,9 @@ class Bench:
     faults_cleared: list[str] = field(default_factory=list)  # watchdog faults recovered from
     # (the zero in use, the home survey's reading of it then): the re-homed zero's reference
     home_reference_mm: tuple[float, float] | None = None
+    # each home survey's σ from its readings' noise alone (what two surveys from one geometry
+    # do not share: the walls' and the rig's part of their σ is common and cancels)
+    survey_noise_mm: list[float] = field(default_factory=list)
 
     async def command(self, send: Callable[[], Awaitable[T]]) -> T:
         """Send a motion command; if the controller refuses it because a stalled demo process
@@ -325,6 +328,8 @@ async def survey_home(bench: Bench) -> float:
     )  # fmt: skip
     if not result["passed"]:
         raise LinkError(f"the home survey failed: {'; '.join(result['reasons'])}")
+    noise = bench.range_noise_mm / math.sqrt(HOME_SURVEY_SAMPLES) / abs(float(result["slope"]))
+    bench.survey_noise_mm.append(noise)
     return float(result["home_mm"])
 
 
@@ -435,7 +440,10 @@ async def drift_experiment(
     # same aim and rig, measures by how much; what both surveys share (rig, walls) cancels.
     await wait_still(bench)
     base, reference = bench.home_reference_mm or (bench.feed.home_s_mm, bench.feed.home_s_mm)
-    bench.feed.set_home(base + await survey_home(bench) - reference)
+    surveyed = base + await survey_home(bench) - reference
+    # The zero is where the two surveys put it apart, to their readings' noise: the filter's
+    # prior on the offset (the homing's repeatability otherwise).
+    bench.feed.set_home(surveyed, math.hypot(*bench.survey_noise_mm[-2:]))
     if (ranger := bench.feed.corrected.ranger) is not None:
         # The zero (at `base` in the rig's arc lengths) reads as `reference` through the range
         # model: the model's bias there (mount, walls), which fixes from the same geometry share.

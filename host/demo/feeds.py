@@ -8,6 +8,7 @@ to both, so they see exactly the same data.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
@@ -88,9 +89,18 @@ class TrackFeed:
         """REF_MARK events received while homed."""
         return self.corrected.marks_seen - self.corrected.marks_unhomed
 
-    def set_home(self, home_s_mm: float) -> None:
-        """After (re)homing: the surveyed home, fresh buffers and filter."""
+    def set_home(self, home_s_mm: float, sigma_mm: float | None = None) -> None:
+        """After (re)homing: the surveyed home (σ: how well it is known now, if better than
+        the homing's repeatability the filter assumes), fresh buffers and filter."""
         self.encoder_only.rehome(home_s_mm)
+        chain = self.corrected.chain
+        if chain is not None:
+            config = self.config or chain.config
+            if sigma_mm is not None:
+                config = dataclasses.replace(config, offset_sigma0_mm=sigma_mm)
+            self.corrected.chain = ChainFilter(
+                dataclasses.replace(config, chain_pitch_mm=chain.config.chain_pitch_mm)
+            )
         self.corrected.rehome(home_s_mm)
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
