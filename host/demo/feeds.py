@@ -8,9 +8,10 @@ to both, so they see exactly the same data.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
-from host.fusion.chain_filter import ChainFilter
+from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
 from host.registration.track_feed import PoseFeed
@@ -21,7 +22,10 @@ HEAD_CAPACITY = 2048
 
 
 def _feed(
-    marks_mm: tuple[float, ...], pitch_mm: float, ranger: RangeFixer | None = None
+    marks_mm: tuple[float, ...],
+    pitch_mm: float,
+    ranger: RangeFixer | None = None,
+    config: ChainFilterConfig | None = None,
 ) -> PoseFeed:
     """A PoseFeed with buffers sized for the demo's longest lookups, horizons as the daemon's."""
     return PoseFeed(
@@ -30,6 +34,7 @@ def _feed(
         marks_mm=marks_mm,
         pitch_mm=lambda: pitch_mm,
         ranger=ranger,
+        chain=None if config is None else ChainFilter(config),
     )
 
 
@@ -40,12 +45,13 @@ class TrackFeed:
     marks_mm: tuple[float, ...] = ()
     pitch_mm: float = 12.7
     ranger: RangeFixer | None = None
+    config: ChainFilterConfig | None = None  # the filter's (the rig file's marks σ)
     encoder_only: PoseFeed = field(init=False)
     corrected: PoseFeed = field(init=False)
 
     def __post_init__(self) -> None:
         self.encoder_only = _feed((), self.pitch_mm)
-        self.corrected = _feed(self.marks_mm, self.pitch_mm, self.ranger)
+        self.corrected = _feed(self.marks_mm, self.pitch_mm, self.ranger, self.config)
 
     @property
     def raw(self) -> SampleBuffer:
@@ -83,9 +89,18 @@ class TrackFeed:
         """REF_MARK events received while homed."""
         return self.corrected.marks_seen - self.corrected.marks_unhomed
 
-    def set_home(self, home_s_mm: float) -> None:
-        """After (re)homing: the surveyed home, fresh buffers and filter."""
+    def set_home(self, home_s_mm: float, sigma_mm: float | None = None) -> None:
+        """After (re)homing: the surveyed home (σ: how well it is known now, if better than
+        the homing's repeatability the filter assumes), fresh buffers and filter."""
         self.encoder_only.rehome(home_s_mm)
+        chain = self.corrected.chain
+        if chain is not None:
+            config = self.config or chain.config
+            if sigma_mm is not None:
+                config = dataclasses.replace(config, offset_sigma0_mm=sigma_mm)
+            self.corrected.chain = ChainFilter(
+                dataclasses.replace(config, chain_pitch_mm=chain.config.chain_pitch_mm)
+            )
         self.corrected.rehome(home_s_mm)
 
     def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:

@@ -189,12 +189,18 @@ def summary_text(results: dict[str, Any]) -> str:
     dr = results["drift"]
     lines.append(
         f"Drift ({100 * dr['elongation']:.1f} % stretch, {dr['tooth_skips']} tooth skips): "
-        f"overlay RMS at 3 m encoder-only {dr['encoder_only_px']['rms']:.2f} px, fused "
+        f"workpiece overlay RMS encoder-only {dr['encoder_only_px']['rms']:.2f} px, fused "
         f"{dr['fused_px']['rms']:.2f} px (target ≤ 0.5 px; {dr['marks_seen']} marks, "
         f"{dr['range_fixes']} rangefinder fixes, {dr['skips_detected']} skips found); frames "
         f"until each skip was put right: {dr['skip_frames']}; fused elsewhere "
         f"{dr['fused_px_outside_skip_windows']['rms']:.2f} px"
     )
+    if "fused_world_px" in dr:
+        lines.append(
+            f"  against the world frame (a probe 3 m on the axis, with the board survey's "
+            f"placement error, which the workpiece shares): "
+            f"fused {dr['fused_world_px']['rms']:.2f} px"
+        )
     if "fused_track_px" in dr:
         lines.append(
             f"  of which the track position alone (the host's own rig at the true arc length, "

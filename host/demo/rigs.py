@@ -73,6 +73,42 @@ def paper_demo_rig() -> RigSpec:
     )
 
 
+def exact(spec: RigSpec) -> RigSpec:
+    """The description as the truth: every value it hands over with σ 0.
+
+    Only the home stays as it is: the demo surveys the controller's zero at every run, and the
+    head's read noise is the sensor's, not a calibration's.
+    """
+
+    def pose(p: Pose6) -> Pose6:
+        return Pose6(p.matrix, provenance=p.provenance)
+
+    track, cam = spec.track, spec.camera
+    intrinsics = dataclasses.replace(
+        cam.intrinsics, sigma=(0.0,) * len(cam.intrinsics.sigma), covariance=None
+    )
+    return dataclasses.replace(
+        spec,
+        covariance=None,
+        track=dataclasses.replace(
+            track,
+            placement=pose(track.placement),
+            marks=dataclasses.replace(track.marks, sigma_mm=0.0),
+            arc_radius_sigma_mm=0.0,
+        ),
+        hall=dataclasses.replace(
+            spec.hall,
+            surfaces=tuple(dataclasses.replace(s, sigma_mm=0.0) for s in spec.hall.surfaces),
+        ),
+        head=dataclasses.replace(spec.head, m_cr=pose(spec.head.m_cr)),
+        rangefinder=dataclasses.replace(spec.rangefinder, mount=pose(spec.rangefinder.mount)),
+        camera=dataclasses.replace(
+            cam, intrinsics=intrinsics, latency=dataclasses.replace(cam.latency, sigma=0.0)
+        ),
+        workpiece=dataclasses.replace(spec.workpiece, frame=pose(spec.workpiece.frame)),
+    )
+
+
 def model_of(spec: RigSpec) -> Wireframe:
     """The workpiece model the rig names."""
     path = spec.workpiece.model
@@ -90,10 +126,16 @@ class DemoRigs:
 
     @classmethod
     def make(cls, rig_path: Path | None, seed: int, tolerances: bool) -> DemoRigs:
-        """Read the rig file (or take the paper's), draw the true rig for this seed."""
+        """Read the rig file (or take the paper's), draw the true rig for this seed.
+
+        Without tolerances the host is handed the true rig, and told so: its rig file gives
+        the values it was handed σ 0 (`exact`), or its drift filter and error budget would
+        weigh them by a datasheet's σ they do not have.
+        """
         nominal = paper_demo_rig() if rig_path is None else load_rig(rig_path)
         tol = Tolerances() if tolerances else Tolerances.off()
-        return cls(nominal, true_rig(nominal, seed, tol), nominal, tolerances)
+        host = nominal if tolerances else exact(nominal)
+        return cls(nominal, true_rig(nominal, seed, tol), host, tolerances)
 
     def scenario(self, seed: int) -> Scenario:
         """The plant on the true rig."""

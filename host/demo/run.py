@@ -25,6 +25,8 @@ from host.commissioning.frames import RangeTap
 from host.demo.commissioning_phase import feature_points, make_commissioner, place_board
 from host.demo.daemon_phase import running_daemon
 from host.demo.experiments import (
+    LOOK_AHEAD_PAN_RAD,
+    LOOK_AHEAD_TILT_RAD,
     Bench,
     MovingRobot,
     Plan,
@@ -44,7 +46,8 @@ from host.demo.scoring import true_zero_mm
 from host.demo.world import SimCameraSource, SimWorld
 from host.experiments.budget import inputs_from_rig, overlay_sigma
 from host.frames.loop import FrameLoop
-from host.fusion.range_fix import RangeFixConfig, RangeFixer
+from host.fusion import rig_references
+from host.fusion.rig_references import chain_config
 from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
 from host.rig import RigError, RigSpec, build_scene, load_rig, save_rig
@@ -183,8 +186,9 @@ async def _experiments(
     ctrl = Controller(world.host_transport())
     scene = build_scene(rigs.host)
     rf = rigs.host.rangefinder
-    ranger = None if scene is None else RangeFixer(rig, scene, RangeFixConfig(noise_mm=rf.noise_mm))
-    feed = TrackFeed(rigs.host.track.marks.s_mm, world.sim.scenario.chain.pitch_mm, ranger)
+    ranger = rig_references.ranger(rigs.host, rig)  # the references with the rig file's σ
+    pitch = world.sim.scenario.chain.pitch_mm
+    feed = TrackFeed(rigs.host.track.marks.s_mm, pitch, ranger, chain_config(rigs.host, pitch))
     ctrl.add_sink(feed)
     ranges = RangeTap()
     ctrl.add_sink(ranges)
@@ -227,6 +231,9 @@ async def _experiments(
         reference = await survey_home(bench)  # the drift's re-homing is compared with this
         bench.home_reference_mm = (rigs.host.track.home.value if surveyed else reference, reference)
         feed.set_home(bench.home_reference_mm[0])
+        if (ranger := feed.corrected.ranger) is not None:  # fixes relative to this survey
+            zero = bench.home_reference_mm[0]
+            ranger.anchor_at(zero, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD, reference)
         await wait_still(bench)
         bench.home_truth_mm = true_zero_mm(world)  # scoring only
         results["home"] = {"estimate": feed.home_s_mm, "truth": bench.home_truth_mm}

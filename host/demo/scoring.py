@@ -107,6 +107,39 @@ def aimed_errors(
     ]
 
 
+def workpiece_errors(
+    regs: tuple[Registration, ...],
+    truth: SceneTruth,
+    host: tuple[Rig, CameraModel],
+    true: tuple[Rig, CameraModel],
+    point_w: tuple[FloatArray, FloatArray],
+) -> list[Score]:
+    """Each registration's overlay error on the workpiece, were the camera aimed at it.
+
+    What an operator sees: the model point where the host draws it (its surveyed workpiece,
+    through its rig and lens at the registered pose) against where the camera shows it (the
+    true workpiece, rig and lens). `point_w` is the point as (host's, true) world position.
+    The registered joint values are carried over to a camera turned toward the point from the
+    true position, as in `aimed_errors`. Unlike a probe on the optical axis, this leaves out
+    what the overlay cannot show: an error of the world frame itself (the board's survey, by
+    which the track was placed) is shared by the workpiece surveyed through the same rig.
+    """
+    (rig, camera), (true_rig, true_camera) = host, true
+    host_w, true_w = point_w
+    pan, tilt = true_rig.aim(truth.s_mm, true_w)
+    seen = transform_points(invert_T(true_rig.T_w_c(truth.s_mm, pan, tilt)), true_w[None, :])
+    uv_true, _ = true_camera.project(seen)
+    out = []
+    for reg in regs:
+        T_est = rig.T_w_c(
+            reg.s_mm, pan + reg.pan_rad - truth.pan_rad, tilt + reg.tilt_rad - truth.tilt_rad
+        )
+        uv, valid = camera.project(transform_points(invert_T(T_est), host_w[None, :]))
+        px = float(np.linalg.norm(uv[0] - uv_true[0])) if bool(valid[0]) else math.inf
+        out.append(Score(truth.s_mm, px, px * float(seen[0, 2]) / true_camera.fx))
+    return out
+
+
 def chain_errors(
     regs: tuple[Registration, ...],
     truth: SceneTruth,

@@ -16,6 +16,16 @@ looks like the opposite skip. A skip is decided only when the evidence tells one
 next: one sharp reference (a mark) suffices; coarse ones (a rangefinder reading at a shallow
 angle) are pooled while consecutive ones agree on the same whole number of pitches, until
 their combined σ is small enough. Other gross outliers are rejected and counted.
+
+A reference may also rest on a model the rig file knows only to its σ: a rangefinder fix is
+solved through the mount, the track's placement and the walls' survey, whose errors bias every
+fix from the same geometry alike. Those parameters (`ChainFilterConfig.bias_cov`, their prior
+covariance) are then states of the filter beside (offset, scale): such a reference passes its
+sensitivity to them (`gradient`) and is weighed with the correlation it really has with its
+neighbours, instead of as independent noise. A bias shared along a straight is learnt as one
+combination and leaves the sharp relative information (stretch, skips) intact; where the
+geometry changes (a corner, another wall) the fixes tell the parameters apart as far as they
+can, and never pull the position by more than the stated σ allows.
 """
 
 from __future__ import annotations
@@ -46,6 +56,8 @@ class ChainFilterConfig:
     reference_sigma_mm: float = 0.1  # σ of one reference detection
     association_gate_mm: float = 300.0  # farthest a reference may be from the prediction
     max_skip_teeth: int = 3
+    # prior covariance of the parameters references may be biased by (None: none are)
+    bias_cov: FloatArray | None = field(default=None, compare=False)
 
 
 @dataclass
@@ -60,7 +72,8 @@ class FilterStats:
 
 @dataclass
 class ChainFilter:
-    """Kalman filter over (offset, scale) mapping encoder arc length to true arc length."""
+    """Kalman filter over (offset, scale) mapping encoder arc length to true arc length, and the
+    references' bias parameters when the configuration has them (states 2 on)."""
 
     config: ChainFilterConfig = field(default_factory=ChainFilterConfig)
     x: FloatArray = field(default_factory=lambda: np.array([0.0, 1.0]))
@@ -72,22 +85,31 @@ class ChainFilter:
 
     def __post_init__(self) -> None:
         c = self.config
-        self.p = np.diag([c.offset_sigma0_mm**2, c.scale_sigma0**2])
+        bias = np.zeros((0, 0)) if c.bias_cov is None else np.asarray(c.bias_cov, np.float64)
+        n = 2 + len(bias)
+        self.x = np.concatenate([self.x[:2], np.zeros(len(bias))])
+        self.p = np.zeros((n, n))
+        self.p[:2, :2] = np.diag([c.offset_sigma0_mm**2, c.scale_sigma0**2])
+        self.p[2:, 2:] = bias
+
+    @property
+    def biases(self) -> int:
+        """How many bias parameters the filter carries."""
+        return len(self.x) - 2
 
     def predict(self, enc_mm: float) -> None:
         """Grow the uncertainty with the travel since the last call."""
         if self._last_enc_mm is not None:
             travel_m = abs(enc_mm - self._last_enc_mm) / 1000.0
             c = self.config
-            self.p = self.p + np.diag(
-                [c.offset_walk_mm_per_m**2 * travel_m, c.scale_walk_per_m**2 * travel_m]
-            )
+            self.p[0, 0] += c.offset_walk_mm_per_m**2 * travel_m
+            self.p[1, 1] += c.scale_walk_per_m**2 * travel_m
         self._last_enc_mm = enc_mm
 
     def estimate(self, enc_mm: float) -> tuple[float, float]:
         """True arc length for an encoder reading, and its σ in mm."""
         h = np.array([1.0, enc_mm])
-        return float(h @ self.x), math.sqrt(max(float(h @ self.p @ h), 0.0))
+        return float(h @ self.x[:2]), math.sqrt(max(float(h @ self.p[:2, :2] @ h), 0.0))
 
     def correct(self, enc_mm: FloatArray) -> FloatArray:
         """True arc lengths for many encoder readings at once (the current estimate)."""
@@ -100,16 +122,23 @@ class ChainFilter:
         true_mm: float,
         sigma_mm: float | None = None,
         advance: bool = True,
+        gradient: FloatArray | None = None,
     ) -> bool:
         """Apply one absolute reference (the encoder read enc_mm at true position true_mm).
 
         `advance=False` for a reference older than the newest encoder reading: its travel has
         already been counted by `predict`, and counting it back and forth would inflate it.
+        `gradient`: the reference's sensitivity to the bias parameters (true_mm reads the true
+        position plus gradient · bias); None for a reference that rests on none of them.
+        `sigma_mm` is then the reference's own noise only.
         """
         if advance:
             self.predict(enc_mm)
         r = (sigma_mm if sigma_mm is not None else self.config.reference_sigma_mm) ** 2
-        h = np.array([1.0, enc_mm])
+        h = np.zeros(len(self.x))
+        h[:2] = 1.0, enc_mm
+        if gradient is not None and self.biases:
+            h[2:] = gradient
         innovation = true_mm - float(h @ self.x)
         s = float(h @ self.p @ h) + r
         if innovation**2 > GATE_SIGMAS**2 * s:
@@ -121,7 +150,7 @@ class ChainFilter:
         self._pending = None
         gain = self.p @ h / s
         self.x = self.x + gain * innovation
-        self.p = (np.eye(2) - np.outer(gain, h)) @ self.p
+        self.p = self.p - np.outer(gain, h @ self.p)
         self.p = 0.5 * (self.p + self.p.T)
         self.stats.updates += 1
         return True
@@ -159,8 +188,10 @@ class ChainFilter:
         if band >= 0.5 * true_pitch or abs(pooled - teeth * true_pitch) > band:
             return False
         # offset' = offset + teeth · pitch · scale: shift it, carry the scale's σ into it.
-        jump = np.array([[1.0, teeth * c.chain_pitch_mm], [0.0, 1.0]])
-        self.x = np.array([self.x[0] + teeth * true_pitch, self.x[1]])
+        jump = np.eye(len(self.x))
+        jump[0, 1] = teeth * c.chain_pitch_mm
+        self.x = self.x.copy()
+        self.x[0] += teeth * true_pitch
         self.p = jump @ self.p @ jump.T
         self._pending = None
         self.stats.skips_detected += 1

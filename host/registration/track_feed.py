@@ -103,8 +103,13 @@ class PoseFeed:
         predicted = self.home_s_mm + self.chain.estimate(rel)[0]
         pan, tilt = float(angles.value[0]), float(angles.value[1])
         fix = self.ranger.fix(predicted, pan, tilt, distance_mm if quality > 0 else None)
-        if fix is not None:
-            self._reference(t_host_ns, rel, fix.s_mm - self.home_s_mm, fix.sigma_mm)
+        if fix is None:
+            return
+        if fix.gradient is not None and len(fix.gradient) == self.chain.biases:
+            # the filter holds the range model's parameters: the bias is weighed as shared
+            self._reference(t_host_ns, rel, fix.s_mm - self.home_s_mm, fix.sigma_mm, fix.gradient)
+        else:
+            self._reference(t_host_ns, rel, fix.s_mm - self.home_s_mm, fix.total_sigma_mm)
 
     def on_mark(self, t_host_ns: int, s_mm: float) -> None:
         """A mark's captured encoder position: the nearest configured mark is the reference."""
@@ -165,14 +170,19 @@ class PoseFeed:
         return True
 
     def _reference(
-        self, t_ns: int, enc_rel_mm: float, true_rel_mm: float, sigma_mm: float | None = None
+        self,
+        t_ns: int,
+        enc_rel_mm: float,
+        true_rel_mm: float,
+        sigma_mm: float | None = None,
+        gradient: FloatArray | None = None,
     ) -> None:
         """Apply one absolute reference stamped t_ns; if taken, re-correct the buffer from then.
 
         The encoder samples up to now have already been predicted through, hence no advance.
         """
         assert self.chain is not None
-        if self.chain.reference(enc_rel_mm, true_rel_mm, sigma_mm, advance=False):
+        if self.chain.reference(enc_rel_mm, true_rel_mm, sigma_mm, False, gradient):
             self._correct_since(t_ns)
 
     def _correct_since(self, t_ns: int) -> None:

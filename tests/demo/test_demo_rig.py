@@ -16,7 +16,7 @@ from hil_sim.scenario import Scenario
 from host.calibration.board import BoardDetector
 from host.demo.commissioning_phase import board_view_conflicts, place_board
 from host.demo.experiments import HOME_SURVEY_SAMPLES, Plan
-from host.demo.rigs import DemoRigs, model_of
+from host.demo.rigs import DemoRigs, exact, model_of
 from host.demo.run import run_demo
 from host.rig import INTRINSIC_KEYS, build_kinematics, load_rig
 from tests.demo.test_demo_quick import _static_bound_mm
@@ -64,7 +64,11 @@ def test_open_track_demo_registers_within_what_the_sensors_allow(
     assert results["moving"]["R_percent"] < bound
     drift = results["drift"]
     assert drift["marks_seen"] >= 2
-    assert drift["fused_px"]["rms"] < drift["encoder_only_px"]["rms"] / 10
+    # A frame exposed between the skip and its first fix carries a whole pitch (scored at the
+    # workpiece's depth: ~27 px on this gantry), so the short loop's RMS depends on whether a
+    # frame lands there: the skip is bounded by its frames, the rest by the encoder-only drift.
+    assert max(drift["skip_frames"]) <= 2
+    assert drift["fused_px_outside_skip_windows"]["rms"] < drift["encoder_only_px"]["rms"] / 10
     # The host was handed this very rig: every parameter's error is zero, but for the zero the
     # rangefinder surveyed (3 σ of its averaged readings).
     calibration = dict(results["calibration"])
@@ -75,7 +79,7 @@ def test_open_track_demo_registers_within_what_the_sensors_allow(
                for p in calibration.values())  # fmt: skip
     written = json.loads((out / "results.json").read_text())
     assert written["rig"] == results["rig"]
-    assert load_rig(out / "rig.toml") == load_rig(GANTRY)  # what the host read
+    assert load_rig(out / "rig.toml") == exact(load_rig(GANTRY))  # what the host read: σ 0
 
 
 @pytest.mark.parametrize(

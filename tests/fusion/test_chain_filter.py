@@ -151,3 +151,39 @@ def test_a_good_reference_in_between_clears_the_pooled_evidence() -> None:
     for k in range(5, 8):
         assert not filt.reference(5200.0 + k, (5200.0 + k) * 1.005 + jumped, sigma_mm=3.0)
     assert filt.stats.skips_detected == 0
+
+
+def _biased_run(bias_cov: np.ndarray | None, skip_at_mm: float | None = None) -> ChainFilter:
+    """Fixes every 5 mm that all read 1.5 mm long (one shared bias, σ 0.5 mm of noise), and a
+    sharp mark (σ 0.1 mm) every metre; 0.5 % stretch, an optional tooth skip."""
+    rng = np.random.default_rng(3)
+    config = ChainFilterConfig(chain_pitch_mm=PITCH_MM, bias_cov=bias_cov)
+    filt = ChainFilter(config)
+    jump = 0.0
+    for enc in np.arange(5.0, 4000.0, 5.0):
+        if skip_at_mm is not None and enc >= skip_at_mm:
+            jump = PITCH_MM * 1.005
+        true = enc * 1.005 + jump
+        if enc % 1000.0 < 5.0:
+            filt.reference(enc, true, 0.1)  # a mark: no bias
+        g = None if bias_cov is None else np.array([1.0])
+        filt.reference(enc, true + 1.5 + rng.normal(0.0, 0.5), 0.5, gradient=g)
+    return filt
+
+
+def test_a_bias_the_references_share_is_a_state_not_noise() -> None:
+    """Taken as independent noise, hundreds of fixes outvote the marks and pull the position
+    by their shared bias; held as a state, the bias is learnt and the marks keep the position."""
+    naive, held = _biased_run(None), _biased_run(np.array([[2.0**2]]))
+    assert naive.estimate(4000.0)[0] - 4000.0 * 1.005 > 1.0
+    assert held.biases == 1
+    assert held.estimate(4000.0)[0] == pytest.approx(4000.0 * 1.005, abs=0.1)
+    assert held.x[2] == pytest.approx(1.5, abs=0.1)
+
+
+def test_a_skip_is_found_through_a_shared_bias() -> None:
+    filt = _biased_run(np.array([[2.0**2]]), skip_at_mm=2500.0)
+    assert filt.stats.skips_detected == 1
+    assert filt.stats.rejected == 0
+    assert filt.estimate(3995.0)[0] == pytest.approx(3995.0 * 1.005 + PITCH_MM * 1.005, abs=0.1)
+    assert filt.x[2] == pytest.approx(1.5, abs=0.1)
