@@ -22,3 +22,15 @@ def test_console_script_runs() -> None:
         [sys.executable, "-m", "host.cli", "--version"], capture_output=True, text=True, check=True
     )
     assert "orbitar" in out.stdout
+
+
+def test_the_demo_commissions_by_default() -> None:
+    """`orbitar demo` starts the host from the rig's description and commissions it (issue 11):
+    handing the host the simulated truth is the opt-in `--tolerances off`."""
+    from host.cli import build_parser
+
+    args = build_parser("demo").parse_args(["demo"])
+    assert args.tolerances == "on"
+    assert args.commission == "auto"
+    off = build_parser("demo").parse_args(["demo", "--tolerances", "off"])
+    assert off.tolerances == "off"

@@ -341,7 +341,9 @@ def add_parser(subparsers: Any) -> None:
     demo = subparsers.add_parser(
         "demo", help="run the paper's experiments on the built-in simulator, write a report"
     )
-    demo.add_argument("--quick", action="store_true", help="a shorter run (about 30 s)")
+    demo.add_argument(
+        "--quick", action="store_true", help="a shorter run (about 2 min with commissioning)"
+    )
     demo.add_argument(
         "--link",
         choices=("pty", "xbee", "can"),
@@ -364,9 +366,11 @@ def add_parser(subparsers: Any) -> None:
     demo.add_argument(
         "--tolerances",
         choices=("off", "on"),
-        default="off",
-        help="on: the simulated rig is off its description by seeded installation tolerances "
-        "and the host starts from the description only (off: the host is handed the truth)",
+        default="on",
+        help="on (default): the simulated rig is off its description by seeded installation "
+        "tolerances and the host starts from the description only, so the demo commissions it "
+        "first; off: the host is handed the simulated rig (registration figures without "
+        "calibration error)",
     )
     demo.add_argument(
         "--commission",
