@@ -204,7 +204,8 @@ def judge(
 
     δ's σ is the regression's and `clock_sigma_ms` in quadrature: the pose source's samples
     reach the frames' clock through the link's clock sync, whose error at the time is common to
-    every frame (the regression takes it for latency and its residuals cannot show it).
+    every frame (the regression takes it for latency and its residuals cannot show it). The
+    threshold applies to the regression's σ, the part more or faster passes reduce.
     """
     n = len(frames)
     speeds = [f.v_mm_s for f in frames]
@@ -219,11 +220,13 @@ def judge(
     r = d - A @ coef
     var = float(r @ r) / max(n - 2, 1)
     cov = var * np.linalg.inv(A.T @ A)
-    delta, sigma = float(coef[0]), float(np.hypot(np.sqrt(cov[0, 0]), clock_sigma_ms))
+    fit_sigma = float(np.sqrt(cov[0, 0]))
+    delta, sigma = float(coef[0]), float(np.hypot(fit_sigma, clock_sigma_ms))
     out = LatencyOutcome(True, [], old_ms, delta, sigma, float(coef[1]), n, float(np.sqrt(var)))
-    if sigma > limits.max_sigma_ms:
+    if fit_sigma > limits.max_sigma_ms:  # what the passes control; the clock's σ is written
         out.passed = False
-        out.reasons = [f"σ {sigma:.2f} ms > {limits.max_sigma_ms} ms (more passes, or faster)"]
+        why = f"σ {fit_sigma:.2f} ms > {limits.max_sigma_ms} ms (more passes, or faster)"
+        out.reasons = [why]
     else:
         out.reasons = [
             f"latency {out.new_ms:.2f} ± {sigma:.2f} ms over {n} frames (was {old_ms:.2f} ms)"

@@ -243,6 +243,18 @@ def _trolley_s(controller: Any, env: CommissioningEnv) -> float | None:
     return None if pos is None else float(pos) + env.home_s_mm()
 
 
+def _clock_sigma_ms(controller: Any) -> float | None:
+    """The link's clock-sync σ now (ms), as its estimator measures it; None before a fit.
+
+    It grows with the link's load (slow round trips weigh less in its fit); the rig file's
+    value, a default until measured, does not.
+    """
+    clock = getattr(getattr(controller, "session", None), "clock", None)
+    if clock is None or not clock.ready:
+        return None
+    return float(clock.uncertainty_ns()) / 1e6
+
+
 def _head_now(controller: Any) -> tuple[float, float] | None:
     """The head's (pan, tilt) now, where a plan's first view turns it from (None if unknown)."""
     head = controller.snapshot().get("head_rad")
@@ -334,7 +346,9 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
             io, tap, pose_at, det, view, span, speed, passes, progress
         )
         progress["phase"] = "solving"
-        clock_ms = env.spec().camera.clock_sync.sigma
+        # the link's clock-sync error is common to every frame: its σ as the estimator
+        # measures it during the passes (it grows with the link's load), never below the rig's
+        clock_ms = max(env.spec().camera.clock_sync.sigma, _clock_sigma_ms(controller) or 0.0)
         out = await asyncio.to_thread(
             latency_run.judge, frames, rig, camera, T_w_b, env.latency_ms(), limits, clock_ms
         )
