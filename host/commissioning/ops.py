@@ -102,16 +102,22 @@ def image_targets(args: Mapping[str, Any]) -> tuple[tuple[float, float], ...]:
     if v is None:
         return IMAGE_TARGETS
     why = f"image_targets = {v!r}: expected 1-{MAX_TARGETS} [fx, fy], each in (0, 1)"
-    if not isinstance(v, list) or not 1 <= len(v) <= MAX_TARGETS:
+    rows = number_rows(v, 2, 1, MAX_TARGETS, why)
+    if not all(0.0 < x < 1.0 for row in rows for x in row):
         raise OpError("bad_args", why)
-    out = []
-    for t in v:
-        if not isinstance(t, list | tuple) or len(t) != 2 or not all(_finite(x) for x in t):
+    return tuple((row[0], row[1]) for row in rows)
+
+
+def number_rows(v: Any, width: int, least: int, most: int, why: str) -> list[tuple[float, ...]]:
+    """A list of `least`-`most` rows of `width` finite numbers, as floats; OpError(why) if not."""
+    if not isinstance(v, list) or not least <= len(v) <= most:
+        raise OpError("bad_args", why)
+    for row in v:
+        if not isinstance(row, list | tuple) or len(row) != width:
             raise OpError("bad_args", why)
-        if not all(0.0 < x < 1.0 for x in t):
+        if not all(_finite(x) for x in row):
             raise OpError("bad_args", why)
-        out.append((float(t[0]), float(t[1])))
-    return tuple(out)
+    return [tuple(float(x) for x in row) for row in v]
 
 
 def thresholds(args: Mapping[str, Any]) -> intrinsics_run.Thresholds:
@@ -363,14 +369,8 @@ def aims(args: Mapping[str, Any]) -> list[ViewTarget]:
     """`aims`: [[s_mm, pan_rad, tilt_rad], ...], one per feature point (3-64)."""
     v = args.get("aims")
     why = f"aims = {v!r}: expected 3-{MAX_STATIONS} [s_mm, pan_rad, tilt_rad]"
-    if not isinstance(v, list) or not 3 <= len(v) <= MAX_STATIONS:
-        raise OpError("bad_args", why)
-    out = []
-    for i, a in enumerate(v):
-        if not isinstance(a, list | tuple) or len(a) != 3 or not all(_finite(x) for x in a):
-            raise OpError("bad_args", why)
-        out.append(ViewTarget(float(a[0]), float(a[1]), float(a[2]), f"P{i + 1}"))
-    return out
+    rows = number_rows(v, 3, 3, MAX_STATIONS, why)
+    return [ViewTarget(s, pan, tilt, f"P{i + 1}") for i, (s, pan, tilt) in enumerate(rows)]
 
 
 async def op_survey_workpiece(ctx: OpContext, args: Mapping[str, Any]) -> Any:
@@ -557,15 +557,10 @@ def poses_arg(args: Mapping[str, Any]) -> list[ViewTarget] | None:
     v = args.get("aims")
     if v is None:
         return None
-    why = f"aims: expected 1-{MAX_POSES} [s_mm, pan_rad, tilt_rad]"
-    if not isinstance(v, list) or not 1 <= len(v) <= MAX_POSES:
-        raise OpError("bad_args", why)
-    out = []
-    for a in v:
-        if not isinstance(a, list | tuple) or len(a) != 3 or not all(_finite(x) for x in a):
-            raise OpError("bad_args", why)
-        out.append(ViewTarget(float(a[0]), float(a[1]), float(a[2]), f"s={a[0]:.0f}"))
-    return out
+    rows = number_rows(
+        v, 3, 1, MAX_POSES, f"aims: expected 1-{MAX_POSES} [s_mm, pan_rad, tilt_rad]"
+    )
+    return [ViewTarget(s, pan, tilt, f"s={s:.0f}") for s, pan, tilt in rows]
 
 
 async def op_calibrate_rangefinder(ctx: OpContext, args: Mapping[str, Any]) -> Any:
