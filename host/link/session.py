@@ -60,7 +60,10 @@ PROBE_ALIGN_MAX_S = 0.1  # a probe waits at most this long for a controller fram
 HEARTBEAT_MAX_S = 0.25  # 4 Hz costs an XBee 2.8 % of its air; 10 Hz cost 7 %
 HEARTBEAT_SLACK_S = 0.002  # a wake-up this close to the heartbeat's time counts as on time
 MAX_CLOCK_PROBES_IN_FLIGHT = 16  # older unanswered probes are forgotten
-RTO_CLOCK_GRANULARITY_S = 0.001  # G in RFC 6298
+# G in RFC 6298, here the host's timer granularity: an asyncio loop on a busy PC wakes a few
+# ms late. At 1 ms a link as regular as the emulated one drove RTTVAR to ~0, the RTO to
+# SRTT + 1 ms, and any late wake-up into a spurious retransmit (air an XBee does not have).
+RTO_CLOCK_GRANULARITY_S = 0.005
 RTO_ALPHA = 1 / 8
 RTO_BETA = 1 / 4
 RTO_K = 4

