@@ -70,7 +70,8 @@ async def test_replayed_bytes_give_the_live_samples_at_the_live_times() -> None:
     link = LinkReplay(replayed)
     for _, t_ns, d in tapped:
         link.feed(d["dir"], t_ns, d["bytes"])
-    assert link.stats.probes_used >= 5
+    # Probes go out at 10 Hz over a run of a few seconds; a loaded machine sends fewer.
+    assert link.stats.probes_used >= 2
     assert link.stats.handshakes == 1
     assert len(replayed.encoder) == len(live.encoder) > 100
     t_live = np.array([t for t, _ in live.encoder])
