@@ -205,14 +205,29 @@ class Harness:
         return await self.client.request(op, **args)
 
     async def budget_at(self, pan: float, tilt: float, timeout_s: float = 10.0) -> Any:
-        """The status' service part once its error budget is of these head angles (the daemon
-        evaluates it in the background and reports the pose it was evaluated at)."""
+        """The status' service part once its error budget is of these head angles and the head
+        has settled there (the daemon evaluates it in the background at the pose it reports;
+        a value of a pose the head was still passing would be replaced by a later one).
+
+        Settled: the controller's head is at the angles, the evaluated pose (trolley and head)
+        is the controller's as it stands, and two polls in a row give the same σ."""
         deadline = asyncio.get_running_loop().time() + timeout_s
+        previous = None
         while True:
-            service = (await self.request("status"))["service"]
-            at = service["overlay_sigma_pose"]
-            if at is not None and abs(at["pan_rad"] - pan) + abs(at["tilt_rad"] - tilt) < 2e-3:
-                return service
+            status = await self.request("status")
+            service, ctrl = status["service"], status["controller"]
+            at, head = service["overlay_sigma_pose"], ctrl["head_rad"]
+            here = at is not None and abs(head[0] - pan) + abs(head[1] - tilt) < 2e-3
+            if (
+                here
+                and abs(at["pan_rad"] - head[0]) + abs(at["tilt_rad"] - head[1]) < 1e-4
+                and abs(at["position_mm"] - ctrl["position_mm"]) < 0.1
+            ):
+                if previous is not None and previous == service["overlay_sigma_px"]:
+                    return service
+                previous = service["overlay_sigma_px"]
+            else:
+                previous = None
             if asyncio.get_running_loop().time() > deadline:
                 raise AssertionError(f"no error budget at pan {pan}, tilt {tilt}: {service}")
             await asyncio.sleep(0.05)

@@ -209,7 +209,8 @@ async def test_page_loads_offline_and_the_overlay_sits_on_the_projection(
     if sigma is None:
         await page.wait_for_function(f"{row_js}.textContent.includes('unknown')")
     else:
-        await page.wait_for_function(f"{row_js}.textContent.includes('{sigma:.1f} px')")
+        shown = await page.evaluate(f"({sigma}).toFixed(1)")  # a tie rounds up, not to even
+        await page.wait_for_function(f"{row_js}.textContent.includes('{shown} px')")
         row = await page.locator("#status tr", has_text="overlay σ").text_content()
         assert "s old" in row, row
     # The ghost is this page's choice: off, and the daemon draws it no more in its frames.
