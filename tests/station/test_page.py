@@ -25,6 +25,7 @@ from host.control.client import ControlClient
 from host.geometry.transforms import invert_T, transform_points
 from host.service.wiring import build_camera, build_rig, workpiece_pose
 from host.station.parts import BUILTIN_SIDECAR, load_parts
+from host.station.server import RUN_OPS
 from tests.station.conftest import ARTIFACTS, VIEWER_TOKEN, StationRig, dump
 
 JOG_SPEED_MM_S = 100.0  # the page's default speed slider
@@ -146,6 +147,12 @@ async def test_page_loads_offline_and_the_overlay_sits_on_the_projection(
     requests: list[str] = []
     page = await open_page(browser, station_rig.url(), requests)
     await page.wait_for_function("orbitar.connected && orbitar.role === 'operator'")
+    # every commissioning run the daemon offers has its form on the page
+    options = "[...document.querySelectorAll('#run-op option')]"
+    offered = await page.evaluate(f"{options}.map((o) => o.value)")
+    assert offered == RUN_OPS
+    forms = await page.evaluate("Object.keys(RUN_FORMS)")
+    assert sorted(forms) == sorted(RUN_OPS), "a run without its form, or a form of no run"
     await frames_after(page, 8)
     stats = await ctl.request("link_stats")
     head = (await controller(ctl))["head_rad"]
