@@ -19,7 +19,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 
 from hil_sim.camera import PlacedBoard
@@ -54,12 +53,7 @@ BOARD_ASIDE_MM = 400.0  # ... and this far to the left of it (or the right: `pla
 BOARD_FILL = 0.8
 BOARD_MIN_BELOW_MM = 1500.0  # nearer, the stations 1 m to either side would see it too steeply
 BOARD_MIN_Z_MM = 500.0  # the lowest stand
-# ... and in no planned view within this many pixels of the workpiece's outline (the convex
-# hull of the drawing's model, seen from there): the simulated camera, like a real one behind
-# a thin wire frame, draws the model's edges over the board, and a marker an edge crosses does
-# not decode (the corners beside it go with it). The margin covers the workpiece's placement
-# tolerance and the line's width.
-BOARD_CLEAR_PX = 20.0
+BOARD_MAX_CROSSED = 0.2  # ... and in no view the workpiece's edges cross more of its markers
 BOARD_HALL_CLEARANCE_MM = 300.0  # the stand stays this far inside the hall's walls
 # where else the stand may go along a straight, after the first place: every this many mm
 BOARD_ALONG_STEP_MM = 300.0
@@ -116,8 +110,8 @@ def place_board(rigs: DemoRigs, seed: int) -> BoardSetup:
     (`board_stretches`). Of the places along those straights (nearest first to
     `BOARD_ALONG_MM` past the power-on position, every `BOARD_ALONG_STEP_MM`) and to either
     side of the track (the left first) inside the hall, the board goes to the first where
-    every planned view of it is within the head's limits and keeps it clear of the
-    workpiece's outline (`board_view_conflicts`); the least bad if none is.
+    every planned view of it is within the head's limits and has the workpiece's edges across
+    none of it (`board_view_conflicts`); the least bad if none is.
     """
     rng = np.random.default_rng([seed, 0xB0A2D])
     turn = (rng.uniform(-0.3, 0.3), rng.normal(0, 0.05), rng.normal(0, 0.05))
@@ -240,11 +234,9 @@ def board_view_conflicts(
 ) -> tuple[int, int]:  # fmt: skip
     """Over the board views of the commissioning plan for a board at T_w_b above s_mm (the
     intrinsics and head views, the acceptance check's, and the latency passes' ends): (views in
-    which the board's outline comes within `BOARD_CLEAR_PX` of the drawing's workpiece's
-    outline, views that cannot be planned).
-
-    Both outlines through K only: the lens's distortion, where it maps one to one, keeps two
-    outlines apart that are apart without it (and folds far points back into the image)."""
+    which the drawing's workpiece edges cross more than `BOARD_MAX_CROSSED` of the markers in
+    view, views that cannot be planned). The simulated camera, like a real one behind a thin
+    wire frame, draws the edges over the board, and a marker an edge crosses does not decode."""
     intrinsics, check = board_stations(rigs, s_mm, spacing_mm)
     centre = (T_w_b @ np.append(board.centre_mm, 1.0))[:3]
     head = rigs.host.head
@@ -256,48 +248,55 @@ def board_view_conflicts(
     missing = planned - len(views) - len(at)
     poses = [rig.T_c_w(v.s_mm, v.pan_rad, v.tilt_rad) for v in views]
     for v in at:  # the head stays aimed from the middle while the trolley passes
-        ends = within_travel(rigs, [v.s_mm - LATENCY_SPAN_MM / 2, v.s_mm + LATENCY_SPAN_MM / 2])
-        poses += [rig.T_c_w(s, v.pan_rad, v.tilt_rad) for s in [v.s_mm, *ends]]
-    w, h = board.squares_x * board.square_mm, board.squares_y * board.square_mm
-    outline_w = transform_points(T_w_b, np.array([[0, 0, 0], [w, 0, 0], [w, h, 0], [0, h, 0.0]]))
-    model_w = transform_points(rigs.host_workpiece(), model_of(rigs.host).vertices)
+        passes = within_travel(rigs, [v.s_mm - LATENCY_SPAN_MM / 2, v.s_mm + LATENCY_SPAN_MM / 2])
+        poses += [rig.T_c_w(s, v.pan_rad, v.tilt_rad) for s in [v.s_mm, *passes]]
+    markers_b = np.asarray(board.make().getObjPoints(), dtype=np.float64).reshape(-1, 3)
+    markers_w = transform_points(T_w_b, markers_b)
+    model = model_of(rigs.host)
+    model_w = transform_points(rigs.host_workpiece(), model.vertices)
+    size = np.array([camera.width, camera.height], dtype=np.float64)
     spoilt = 0
     for T_c_w in poses:
-        quad, q_ok = _pinhole(camera, T_c_w, outline_w)
-        model_uv, m_ok = _pinhole(camera, T_c_w, model_w)
-        if not m_ok.any():
-            continue  # all of the workpiece behind the camera
-        if not (q_ok.all() and m_ok.all()):
-            spoilt += 1  # the outline of a workpiece partly behind the camera is unbounded
-            continue
-        hull = cv2.convexHull(model_uv.astype(np.float32)).reshape(-1, 2).astype(np.float64)
-        spoilt += _gap_px(quad, hull) < BOARD_CLEAR_PX
+        quads, q_ok = _pinhole(camera, T_c_w, markers_w)
+        quads, q_ok = quads.reshape(-1, 4, 2), q_ok.reshape(-1, 4)
+        seen = q_ok.all(axis=1) & ((quads >= 0) & (quads <= size)).all(axis=(1, 2))
+        ends, e_ok = _pinhole(camera, T_c_w, model_w)
+        lines = ends[model.edges][e_ok[model.edges].all(axis=1)]
+        crossed = _segments_cross(lines, quads[seen])
+        spoilt += int(seen.sum()) > 0 and crossed.sum() > BOARD_MAX_CROSSED * seen.sum()
     return int(spoilt), int(missing)
 
 
 def _pinhole(
     camera: CameraModel, T_c_w: FloatArray, points_w: FloatArray
 ) -> tuple[FloatArray, Any]:
-    """Pixels through K only, and whether each point is in front of the camera."""
+    """Pixels through K only (distortion folds far points back into the image), and whether
+    each point is in front of the camera."""
     pc = transform_points(T_c_w, points_w)
     front = pc[:, 2] > 1.0
     uv = (pc @ camera.K.T)[:, :2] / np.where(front, pc[:, 2], 1.0)[:, None]
     return uv, front
 
 
-def _gap_px(a: FloatArray, b: FloatArray) -> float:
-    """How far apart two convex polygons are along the best of their sides' normals (negative
-    where they overlap): a lower bound of the distance between them, 0 where they touch."""
-    gap = -math.inf
-    for poly in (a, b):
-        sides = np.roll(poly, -1, axis=0) - poly
-        normals = np.stack([-sides[:, 1], sides[:, 0]], axis=1)
-        lengths = np.linalg.norm(normals, axis=1)
-        normals = normals[lengths > 0] / lengths[lengths > 0, None]
-        pa, pb = a @ normals.T, b @ normals.T  # (n, axes)
-        apart = np.maximum(pb.min(axis=0) - pa.max(axis=0), pa.min(axis=0) - pb.max(axis=0))
-        gap = max(gap, float(apart.max(initial=-math.inf)))
-    return gap
+def _segments_cross(lines: FloatArray, quads: FloatArray) -> Any:
+    """Per convex quad (K, 4, 2): whether any segment (N, 2, 2) passes through it (Cyrus-Beck)."""
+    if len(lines) == 0 or len(quads) == 0:
+        return np.zeros(len(quads), dtype=bool)
+    edge = np.roll(quads, -1, axis=1) - quads  # (K, 4, 2)
+    area = np.sum(quads[:, :, 0] * np.roll(quads[:, :, 1], -1, axis=1), axis=1) - np.sum(
+        quads[:, :, 1] * np.roll(quads[:, :, 0], -1, axis=1), axis=1
+    )
+    inward = np.stack([-edge[..., 1], edge[..., 0]], axis=-1) * np.sign(area)[:, None, None]
+    a, d = lines[:, 0], lines[:, 1] - lines[:, 0]  # (N, 2)
+    # n·(a + t d - p) >= 0 on every side: num + t den >= 0
+    num = np.einsum("kjc,nc->nkj", inward, a) - np.einsum("kjc,kjc->kj", inward, quads)[None]
+    den = np.einsum("kjc,nc->nkj", inward, d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -num / den
+    enter = np.where(den > 0, t, -np.inf).max(axis=2).clip(0.0, None)
+    leave = np.where(den < 0, t, np.inf).min(axis=2).clip(None, 1.0)
+    parallel_out = ((den == 0) & (num < 0)).any(axis=2)
+    return ((enter <= leave) & ~parallel_out).any(axis=0)
 
 
 def board_stations(

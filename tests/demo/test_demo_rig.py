@@ -114,7 +114,8 @@ def test_the_board_and_every_station_that_films_it_stand_on_one_straight_clear_o
     """The head calibration solves the track's placement from views on one straight: stations
     that straddled the open gantry's bend failed its σ(M_cr) limit. Every station the plan
     films the board from (intrinsics and head, the acceptance check, the latency passes) stands
-    on the board's straight, and no planned view has the workpiece's outline near the board."""
+    on the board's straight, and no planned view has the workpiece's edges across the board.
+    The paper's board stays where it stood before this rule (left of the track at 1700 mm)."""
     rigs = DemoRigs.make(path, seed=1, tolerances=True)
     setup = place_board(rigs, 1)
     track = rigs.host_kinematics().track
@@ -134,13 +135,15 @@ def test_the_board_and_every_station_that_films_it_stand_on_one_straight_clear_o
         rigs, rig, camera, setup.board, setup.placed.T_w_b, setup.s_mm, setup.spacing_mm
     )
     assert conflicts == (0, 0)  # clear of the workpiece in every view, every view planned
-    if path is None:  # the paper's rig: the stations as before this rule (1 m either side)
+    if path is None:  # the paper's rig: the board and stations as before this rule
         assert (setup.s_mm, setup.spacing_mm) == (1700.0, 1000.0)
+        centre = (setup.placed.T_w_b @ np.append(setup.board.centre_mm, 1.0))[:3]
+        assert centre[:2] == pytest.approx([-300.0, -1100.0], abs=1.0)
 
 
 def test_a_board_whose_views_have_the_workpiece_across_it_is_refused() -> None:
     """The rule can fail: on the open gantry the workpiece lies left of the first straight, and
-    a board on that side has its outline in the views from the stations before the board."""
+    a board on that side has the workpiece's edges across it in several planned views."""
     rigs = DemoRigs.make(GANTRY, seed=1, tolerances=True)
     setup = place_board(rigs, 1)
     rig, camera = rigs.host_kinematics(), rigs.host_camera()
@@ -167,7 +170,7 @@ def test_the_board_is_placed_for_the_rigs_lens_clear_of_its_workpiece(
     """The open gantry's workpiece lay behind a board placed by the paper's rule: its edges,
     drawn over the board, left no corners at the board's own station; and the true lens's
     distortion folded edges far outside its field of view back across the board (22 of 35
-    corners lost). The board now goes where the drawing's workpiece is clear of all its views,
+    corners lost). The board now goes where the drawing's workpiece crosses none of its views,
     at a distance (or print size) that lets the image's shorter side hold it: rendered through
     the true rig, every planned view finds as many corners with the workpiece as without it,
     and the view from the board's station finds all of them. (Centred from each station in
