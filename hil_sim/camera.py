@@ -221,13 +221,17 @@ class SyntheticCamera:
         return np.asarray(out, dtype=np.uint8)
 
     def _draw_edges(self, img: UInt8Image, T_c_p: FloatArray, model: Wireframe) -> None:
-        """Draw subdivided edges, skipping pieces with an end behind the camera."""
+        """Draw subdivided edges, skipping pieces with an end behind the camera or outside the
+        lens's field of view (where its distortion would fold them back into the image)."""
         v = model.vertices
         a, b = v[model.edges[:, 0]], v[model.edges[:, 1]]
         f = np.linspace(0.0, 1.0, EDGE_SUBDIVISIONS + 1)
-        pts = a[:, None, :] + f[None, :, None] * (b - a)[:, None, :]
-        uv, valid = self.camera.project(transform_points(T_c_p, pts))
+        pts = transform_points(T_c_p, a[:, None, :] + f[None, :, None] * (b - a)[:, None, :])
+        uv, valid = self.camera.project(pts)
         ok = valid & np.all(np.abs(uv) < 1e5, axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            radius = np.hypot(pts[..., 0], pts[..., 1]) / pts[..., 2]
+        ok &= radius < self.camera.one_to_one_radius()
         pieces = np.stack([uv[:, :-1], uv[:, 1:]], axis=2)[ok[:, :-1] & ok[:, 1:]]
         if len(pieces):
             lines = list(np.rint(pieces * 16).astype(np.int32))

@@ -13,6 +13,7 @@ its rangefinder reads the true walls, nothing else does.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -54,13 +55,19 @@ BOARD_MIN_BELOW_MM = 1500.0  # nearer, the stations 1 m to either side would see
 BOARD_MIN_Z_MM = 500.0  # the lowest stand
 BOARD_MAX_CROSSED = 0.2  # ... and in no view the workpiece's edges cross more of its markers
 BOARD_HALL_CLEARANCE_MM = 300.0  # the stand stays this far inside the hall's walls
-# where else the stand may go along the track, after the first place (mm from it), when the
-# drawing's workpiece lies behind the board in a planned view (its edges would cross the board)
-BOARD_ALONG_CHOICES_MM = (0.0, 600.0, -600.0, 1200.0, -1200.0)
+# where else the stand may go along a straight, after the first place: every this many mm
+BOARD_ALONG_STEP_MM = 300.0
 BOARD_SURVEY_SIGMA_MM = 1.0
 BOARD_SURVEY_SIGMA_RAD = 1e-3
-STATION_SPACING_MM = 1000.0  # intrinsics and head views from the board's station and around it
-CHECK_OFFSET_MM = 500.0  # the acceptance test looks from stations not used to calibrate
+# The intrinsics and head views from the board's station and this far to either side of it, all
+# on one straight (the head calibration solves the track's placement, not its arcs' radii); on
+# a straight too short for that, closer, down to the minimum (shorter, the views of the board
+# differ too little in tilt)
+STATION_SPACING_MM = 1000.0
+MIN_STATION_SPACING_MM = 500.0
+STRAIGHT_END_MARGIN_MM = 50.0  # the stations this far inside the straight (the zero's survey)
+TRAVEL_MARGIN_MM = 200.0  # and inside the travel between the limit switches
+CHECK_OFFSET = 0.5  # the acceptance test looks from stations not used to calibrate (× spacing)
 # ... with the board at the image's centre and at two opposite corners: the lens's distortion
 # and the chain's errors show there as at the other two (three views a station, six in all)
 CHECK_TARGETS = ((0.5, 0.5), (0.3, 0.3), (0.7, 0.7))
@@ -91,16 +98,20 @@ class BoardSetup:
     T_w_b_surveyed: FloatArray  # what the host is told
     s_mm: float  # the track position above it
     board: BoardSpec = BOARD  # as printed for this rig's lens and track height
+    spacing_mm: float = STATION_SPACING_MM  # the head stations' distance from s_mm
 
 
 def place_board(rigs: DemoRigs, seed: int) -> BoardSetup:
     """A board face up under the track, turned a little; its survey is off by 1 mm, 1 mrad.
 
     The installer works from the drawing (the nominal rig) and the live view: the board is as
-    far below the track as its lens wants (`board_for_lens`), beside the track, and of the
-    places along and to either side (`BOARD_ALONG_CHOICES_MM`) inside the hall, the first
-    where no planned view from its stations has the workpiece's edges across the board and
-    every view can be planned within the head's limits (the least bad otherwise).
+    far below the track as its lens wants (`board_for_lens`), beside the track above one
+    straight, far enough from its ends that the stations to either side stay on it
+    (`board_stretches`). Of the places along those straights (nearest first to
+    `BOARD_ALONG_MM` past the power-on position, every `BOARD_ALONG_STEP_MM`) and to either
+    side of the track (the left first) inside the hall, the board goes to the first where
+    every planned view of it is within the head's limits and has the workpiece's edges across
+    none of it (`board_view_conflicts`); the least bad if none is.
     """
     rng = np.random.default_rng([seed, 0xB0A2D])
     turn = (rng.uniform(-0.3, 0.3), rng.normal(0, 0.05), rng.normal(0, 0.05))
@@ -108,32 +119,81 @@ def place_board(rigs: DemoRigs, seed: int) -> BoardSetup:
     t = rng.normal(0.0, BOARD_SURVEY_SIGMA_MM, 3)
     rig, camera = rigs.host_kinematics(), rigs.host_camera()
     board, below = board_for_lens(rigs)
-    lo, hi = rigs.travel_mm()
-    first = rigs.start_s_mm() + BOARD_ALONG_MM
-    places = []
-    for side in (1.0, -1.0):
-        for along in BOARD_ALONG_CHOICES_MM:
-            s = min(max(first + along, lo + STATION_SPACING_MM), hi - STATION_SPACING_MM)
-            T = rig.track.pose(s)  # the installer places it by the drawing
-            left_w = -T[:3, 1]  # the trolley's y points right of travel
-            centre = T[:3, 3] + side * BOARD_ASIDE_MM * left_w
-            centre[2] = max(BOARD_MIN_Z_MM, centre[2] - below)
-            if not inside_hall(rigs.host, centre):
+    places: list[tuple[tuple[int, int], float, int, float, float, FloatArray]] = []
+    for s, spacing in board_places(rigs):
+        for side in (1.0, -1.0):
+            T_w_b = stand_pose(rig, board, s, side, below, turn)
+            if not inside_hall(rigs.host, (T_w_b @ np.append(board.centre_mm, 1.0))[:3]):
                 continue
-            yaw = float(np.arctan2(T[1, 0], T[0, 0])) + turn[0]
-            R = rot_x(np.pi) @ euler_zyx(yaw, turn[1], turn[2])
-            T_w_b = make_T(R, centre - R @ board.centre_mm)
-            badness = board_view_conflicts(rigs, rig, camera, board, T_w_b, s)
-            places.append((badness, s, T_w_b))
+            badness = board_view_conflicts(rigs, rig, camera, board, T_w_b, s, spacing)
+            places.append((badness, -spacing, len(places), s, spacing, T_w_b))
             if badness == (0, 0):  # the first good place
                 break
         if places and places[-1][0] == (0, 0):
             break
     if not places:
         raise ValueError(f"rig {rigs.host.name!r}: no place for the board inside the hall")
-    _, s, T_true = min(places, key=lambda p: p[0])
+    *_, s, spacing, T_true = min(places, key=lambda p: p[:3])  # the first of the least bad
     surveyed = T_true @ make_T(rotvec_to_R(w), t)
-    return BoardSetup(PlacedBoard(board.make(), T_true), surveyed, s, board)
+    return BoardSetup(PlacedBoard(board.make(), T_true), surveyed, s, board, spacing)
+
+
+def stand_pose(
+    rig: Rig, board: BoardSpec, s_mm: float, side: float, below_mm: float,
+    turn: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> FloatArray:  # fmt: skip
+    """The board face up `below_mm` under the track (the lowest stand at least) and
+    `BOARD_ASIDE_MM` to its left (side 1) or right (side -1) at s_mm, turned by `turn` (yaw
+    from the track's heading, then pitch and roll), as the installer places it by the drawing."""
+    T = rig.track.pose(s_mm)
+    left_w = -T[:3, 1]  # the trolley's y points right of travel
+    centre = T[:3, 3] + side * BOARD_ASIDE_MM * left_w
+    centre[2] = max(BOARD_MIN_Z_MM, centre[2] - below_mm)
+    yaw = float(np.arctan2(T[1, 0], T[0, 0])) + turn[0]
+    R = rot_x(np.pi) @ euler_zyx(yaw, turn[1], turn[2])
+    return make_T(R, centre - R @ board.centre_mm)
+
+
+def board_stretches(rigs: DemoRigs) -> list[tuple[float, float, float]]:
+    """Where the board's station may be: (first, last, spacing) per straight of the drawing's
+    track long enough for stations `spacing` to either side of it (`STATION_SPACING_MM`, or
+    closer on a short straight, down to `MIN_STATION_SPACING_MM`), each within
+    `STRAIGHT_END_MARGIN_MM` of the straight's ends and `TRAVEL_MARGIN_MM` of the travel's
+    (arc lengths as the trolley travels: a closed loop's straights where the travel meets
+    them). On a track without such a straight, anywhere along the travel, 1 m apart."""
+    track = rigs.host_kinematics().track
+    lo, hi = rigs.travel_mm()
+    lo, hi = lo + TRAVEL_MARGIN_MM, hi - TRAVEL_MARGIN_MM
+    laps = range(math.floor(lo / track.length_mm), math.floor(hi / track.length_mm) + 1)
+    out = []
+    start = 0.0
+    for segment in track.segments:
+        if segment.curvature_per_mm == 0.0:
+            for lap in laps if track.closed else (0,):
+                a = start + lap * track.length_mm + STRAIGHT_END_MARGIN_MM
+                b = a + segment.length_mm - 2.0 * STRAIGHT_END_MARGIN_MM
+                a, b = max(a, lo), min(b, hi)
+                spacing = min(STATION_SPACING_MM, (b - a) / 2.0)
+                if spacing >= MIN_STATION_SPACING_MM:
+                    out.append((a + spacing, b - spacing, spacing))
+        start += segment.length_mm
+    if not out and hi - lo >= 2.0 * STATION_SPACING_MM:
+        out.append((lo + STATION_SPACING_MM, hi - STATION_SPACING_MM, STATION_SPACING_MM))
+    return out
+
+
+def board_places(rigs: DemoRigs) -> list[tuple[float, float]]:
+    """The stations the installer tries for the board, (s, spacing), nearest first to
+    `BOARD_ALONG_MM` past the power-on position: there (or as near as a straight allows), then
+    every `BOARD_ALONG_STEP_MM` along each straight."""
+    first = rigs.start_s_mm() + BOARD_ALONG_MM
+    places: list[tuple[float, float]] = []
+    for a, b, spacing in board_stretches(rigs):
+        near = min(max(first, a), b)
+        steps = np.arange(-math.floor((near - a) / BOARD_ALONG_STEP_MM),
+                          math.floor((b - near) / BOARD_ALONG_STEP_MM) + 1)  # fmt: skip
+        places += [(float(near + k * BOARD_ALONG_STEP_MM), spacing) for k in steps]
+    return sorted(places, key=lambda p: (abs(p[0] - first), p[0]))
 
 
 def board_for_lens(rigs: DemoRigs) -> tuple[BoardSpec, float]:
@@ -170,26 +230,33 @@ def inside_hall(spec: RigSpec, point_w: FloatArray) -> bool:
 
 def board_view_conflicts(
     rigs: DemoRigs, rig: Rig, camera: CameraModel, board: BoardSpec, T_w_b: FloatArray,
-    s_mm: float,
+    s_mm: float, spacing_mm: float = STATION_SPACING_MM,
 ) -> tuple[int, int]:  # fmt: skip
-    """Over the board views of the commissioning plan for a board at T_w_b above s_mm: (views in
+    """Over the board views of the commissioning plan for a board at T_w_b above s_mm (the
+    intrinsics and head views, the acceptance check's, and the latency passes' ends): (views in
     which the drawing's workpiece edges cross more than `BOARD_MAX_CROSSED` of the markers in
     view, views that cannot be planned). The simulated camera, like a real one behind a thin
     wire frame, draws the edges over the board, and a marker an edge crosses does not decode."""
-    intrinsics, check = board_stations(rigs, s_mm)
-    where = [*intrinsics, *check]
+    intrinsics, check = board_stations(rigs, s_mm, spacing_mm)
     centre = (T_w_b @ np.append(board.centre_mm, 1.0))[:3]
     head = rigs.host.head
     limits = ((head.pan_min_rad, head.pan_max_rad), (head.tilt_min_rad, head.tilt_max_rad))
-    views = board_plan(rig, camera, centre, where, IMAGE_TARGETS, limits)
+    views = board_plan(rig, camera, centre, intrinsics, IMAGE_TARGETS, limits)
+    views += board_plan(rig, camera, centre, check, CHECK_TARGETS, limits)
+    at = board_plan(rig, camera, centre, within_travel(rigs, [s_mm]), [(0.5, 0.5)], limits)
+    planned = len(intrinsics) * len(IMAGE_TARGETS) + len(check) * len(CHECK_TARGETS) + 1
+    missing = planned - len(views) - len(at)
+    poses = [rig.T_c_w(v.s_mm, v.pan_rad, v.tilt_rad) for v in views]
+    for v in at:  # the head stays aimed from the middle while the trolley passes
+        passes = within_travel(rigs, [v.s_mm - LATENCY_SPAN_MM / 2, v.s_mm + LATENCY_SPAN_MM / 2])
+        poses += [rig.T_c_w(s, v.pan_rad, v.tilt_rad) for s in [v.s_mm, *passes]]
     markers_b = np.asarray(board.make().getObjPoints(), dtype=np.float64).reshape(-1, 3)
     markers_w = transform_points(T_w_b, markers_b)
     model = model_of(rigs.host)
     model_w = transform_points(rigs.host_workpiece(), model.vertices)
     size = np.array([camera.width, camera.height], dtype=np.float64)
     spoilt = 0
-    for v in views:
-        T_c_w = rig.T_c_w(v.s_mm, v.pan_rad, v.tilt_rad)
+    for T_c_w in poses:
         quads, q_ok = _pinhole(camera, T_c_w, markers_w)
         quads, q_ok = quads.reshape(-1, 4, 2), q_ok.reshape(-1, 4)
         seen = q_ok.all(axis=1) & ((quads >= 0) & (quads <= size)).all(axis=(1, 2))
@@ -197,7 +264,7 @@ def board_view_conflicts(
         lines = ends[model.edges][e_ok[model.edges].all(axis=1)]
         crossed = _segments_cross(lines, quads[seen])
         spoilt += int(seen.sum()) > 0 and crossed.sum() > BOARD_MAX_CROSSED * seen.sum()
-    return int(spoilt), len(where) * len(IMAGE_TARGETS) - len(views)
+    return int(spoilt), int(missing)
 
 
 def _pinhole(
@@ -232,16 +299,19 @@ def _segments_cross(lines: FloatArray, quads: FloatArray) -> Any:
     return ((enter <= leave) & ~parallel_out).any(axis=0)
 
 
-def board_stations(rigs: DemoRigs, s_mm: float) -> tuple[list[float], list[float]]:
+def board_stations(
+    rigs: DemoRigs, s_mm: float, spacing_mm: float = STATION_SPACING_MM
+) -> tuple[list[float], list[float]]:
     """The intrinsics and head stations around the board's, and the acceptance test's."""
-    intrinsics = within_travel(rigs, [s_mm - STATION_SPACING_MM, s_mm, s_mm + STATION_SPACING_MM])
-    return intrinsics, within_travel(rigs, [s_mm - CHECK_OFFSET_MM, s_mm + CHECK_OFFSET_MM])
+    intrinsics = within_travel(rigs, [s_mm - spacing_mm, s_mm, s_mm + spacing_mm])
+    off = CHECK_OFFSET * spacing_mm
+    return intrinsics, within_travel(rigs, [s_mm - off, s_mm + off])
 
 
 def within_travel(rigs: DemoRigs, values: list[float]) -> list[float]:
-    """Arc lengths kept 200 mm inside the travel."""
+    """Arc lengths kept `TRAVEL_MARGIN_MM` inside the travel."""
     lo, hi = rigs.travel_mm()
-    return [min(max(v, lo + 200.0), hi - 200.0) for v in values]
+    return [min(max(v, lo + TRAVEL_MARGIN_MM), hi - TRAVEL_MARGIN_MM) for v in values]
 
 
 def feature_points(spec: RigSpec) -> FloatArray:
@@ -307,7 +377,7 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
     the session near home, where the experiments home it again.
     """
     s = setup.s_mm
-    stations, check = board_stations(rigs, s)
+    stations, check = board_stations(rigs, s, setup.spacing_mm)
     start = rigs.start_s_mm()
     behind_home = rigs.home_switch_mm() + HOME_CLEARANCE_MM  # the controller stops short of it
     survey_at = within_travel(rigs, [max(start + d, behind_home) for d in WORKPIECE_STATIONS_MM])

@@ -18,6 +18,7 @@ The text's 640x480 video mode would need `scaled()` intrinsics from a calibratio
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -107,6 +108,15 @@ class CameraModel:
         xd = x_ * radial + 2.0 * self.p1 * xy + self.p2 * (r2 + 2.0 * x_ * x_)
         yd = y_ * radial + self.p1 * (r2 + 2.0 * y_ * y_) + 2.0 * self.p2 * xy
         return xd, yd
+
+    def one_to_one_radius(self) -> float:
+        """The undistorted normalised radius up to which the radial distortion maps radii one
+        to one (inf where it always does). Beyond it the polynomial turns back and folds far
+        points into the image, where no lens shows them: they lie outside its field of view."""
+        # d/dr of r (1 + k1 r² + k2 r⁴ + k3 r⁶) = 1 + 3 k1 u + 5 k2 u² + 7 k3 u³ with u = r²
+        roots = np.roots([7.0 * self.k3, 5.0 * self.k2, 3.0 * self.k1, 1.0])
+        turns = [r.real for r in roots if abs(r.imag) < 1e-12 and r.real > 0.0]
+        return math.sqrt(min(turns)) if turns else math.inf
 
     def project(self, points_c: ArrayLike) -> tuple[FloatArray, BoolArray]:
         """Camera-frame points (...,3) to pixels (...,2); points behind the camera give NaN."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -70,6 +71,27 @@ def test_board_in_the_hall_behind_the_model() -> None:
     assert found is not None
     assert found.count == SPEC.corner_count
     assert invert_T(T_w_c) @ placed.T_w_b == pytest.approx(T_c_b)
+
+
+def test_a_model_outside_the_field_of_view_is_not_folded_into_the_image() -> None:
+    """Radial distortion with k2 < 0 turns back beyond some radius: the polynomial maps points
+    far outside the lens's field of view into the image (the open gantry's seed-1 lens put the
+    workpiece's edges across the board that way). A lens shows nothing from out there."""
+    lens = CameraModel(fx=2850.0, fy=2850.0, skew=0.0, u0=960.0, v0=600.0, k1=-0.0226, k2=-0.312,
+                       width=1920, height=1200)  # fmt: skip
+    T_w_p = make_T(np.eye(3), [3900.0, 0.0, 3000.0])  # 50-55° off the axis, the camera at 0
+    model = manipulator_wireframe()
+    assert lens.one_to_one_radius() == pytest.approx(0.882, abs=1e-3)
+    a, b = model.vertices[model.edges[:, 0]], model.vertices[model.edges[:, 1]]
+    f = np.linspace(0.0, 1.0, 9)[None, :, None]
+    uv, _ = lens.project((a[:, None] + f * (b - a)[:, None]).reshape(-1, 3) + T_w_p[:3, 3])
+    inside = (uv[:, 0] > 0) & (uv[:, 0] < lens.width) & (uv[:, 1] > 0) & (uv[:, 1] < lens.height)
+    assert inside.any()  # the premise: the polynomial puts some of the model in the image
+    away = make_T(np.eye(3), [0.0, 0.0, -1e6])  # behind the camera
+    shown = SyntheticCamera(lens, seed=2).render_scene(np.eye(4), model, T_w_p).image
+    empty = SyntheticCamera(lens, seed=2).render_scene(np.eye(4), model, away).image
+    np.testing.assert_array_equal(shown, empty)
+    assert CameraModel(k1=-0.2, k2=0.1).one_to_one_radius() == math.inf  # monotonic: no limit
 
 
 def test_frames_are_stamped_at_delivery_unless_triggered() -> None:

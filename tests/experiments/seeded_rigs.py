@@ -42,8 +42,8 @@ from host.demo.commissioning_phase import (
     BOARD_SURVEY_SIGMA_MM,
     BOARD_SURVEY_SIGMA_RAD,
     HOME_CLEARANCE_MM,
-    STATION_SPACING_MM,
     WORKPIECE_STATIONS_MM,
+    board_stations,
     feature_points,
     place_board,
 )
@@ -155,7 +155,7 @@ def commission(
     host_rig, host_cam = build_kinematics(nominal), build_camera(nominal)
     true_kin, true_cam = build_kinematics(truth), build_camera(truth)
     s0 = setup.s_mm
-    stations = [s0 - STATION_SPACING_MM, s0, s0 + STATION_SPACING_MM]
+    stations, _ = board_stations(rigs, s0, setup.spacing_mm)
     centre = (setup.T_w_b_surveyed @ np.append(BOARD.centre_mm, 1.0))[:3]
     lim = ((nominal.head.pan_min_rad, nominal.head.pan_max_rad),
            (nominal.head.tilt_min_rad, nominal.head.tilt_max_rad))  # fmt: skip
