@@ -3,7 +3,10 @@
 Frames keep their ground truth (true T_w_c, true projected points). Model edges are subdivided
 before projection so distortion bends them as a real lens would. The chessboard is ray-cast: each
 pixel is undistorted once (cached per camera), intersected with the board plane and sampled from
-a supersampled board texture, so corners carry the true distortion for calibration tests. A
+a fine board texture, so corners carry the true distortion for calibration tests. A pixel shows
+the mean of the board over its footprint, as a sensor's pixel integrates its area: the texture is
+prefiltered by a box the size of a pixel's footprint on it (`_area_texture`) before the sample at
+the pixel's centre, so boards far away or seen steeply do not alias. A
 ChArUco board (an OpenCV `CharucoBoard`, the same object the installer's detector uses) is
 ray-cast the same way, can sit in the hall behind the model, and can be smeared by the motion
 during the exposure (the mean of renders along the path, as a sensor integrates). `FrameClock`
@@ -31,7 +34,11 @@ BACKGROUND_BGR = (110, 110, 110)
 EDGE_BGR = (0, 200, 255)  # orange-yellow, distinct from the host overlay's green
 EDGE_SUBDIVISIONS = 8  # pieces per model edge, so distortion curves them
 NOISE_SIGMA_DN = 1.5  # Gaussian pixel noise, grey levels
-TEXTURE_PX_PER_SQUARE = 64  # board texture resolution
+TEXTURE_PX_PER_SQUARE = 256  # board texture resolution: 2-4 texels a pixel in the views planned
+POINT_TEXTURE_PX_PER_SQUARE = 64  # ... of the point-sampled renderer (`area_sampled=False`)
+FOOTPRINT_GRID_PX = 32  # a pixel's footprint on the texture is measured on this grid of pixels
+FOOTPRINT_STEP_TEXELS = 0.05  # prefiltered textures are kept for footprints rounded to this
+AREA_TEXTURES_KEPT = 8  # prefiltered textures cached (a still or slow rig reuses one)
 BOARD_MARGIN_SQUARES = 1.0  # white border around the squares, in squares
 TEXTURED_POINT_RADIUS_PX = 3
 # Photogrammetry targets on the workpiece's feature points: a white dot in a black ring, drawn
@@ -117,6 +124,10 @@ class SyntheticCamera:
     seed: int = 0
     noise_sigma_dn: float = NOISE_SIGMA_DN
     blur_samples: int = BLUR_SAMPLES
+    # False: each pixel the texture at its centre's ray, as before area sampling (a coarser
+    # texture, not prefiltered), kept for the corner-bias diagnostic and the test telling the two
+    # apart
+    area_sampled: bool = True
     _rng: np.random.Generator = field(init=False, repr=False)
     _rays: npt.NDArray[np.float32] | None = field(default=None, init=False, repr=False)
     # the last noiseless scene: (what it showed, its image), reused while nothing moved
@@ -176,8 +187,11 @@ class SyntheticCamera:
     ) -> ChessboardFrame:
         """A board of `pattern` = (cols, rows) inner corners, board frame at the first corner."""
         cols, rows = pattern
-        H = self._board_map(T_c_b, square_mm)
-        tex = _board_texture(cols, rows)
+        px = self._texture_px()
+        H = self._board_map(T_c_b, square_mm, px)
+        tex = _board_texture(cols, rows, px)
+        if self.area_sampled:
+            tex = _area_texture(("chessboard", cols, rows), tex, H)
         img = cv2.remap(tex, H, _NO_MAP, cv2.INTER_LINEAR, borderValue=BACKGROUND_BGR[0])
         img3: UInt8Image = np.asarray(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
         corners = chessboard_points(pattern, square_mm)
@@ -213,10 +227,11 @@ class SyntheticCamera:
     def _cast_charuco(self, T_c_b: FloatArray, board: cv2.aruco.CharucoBoard) -> UInt8Image:
         """Grey image of the board seen from T_c_b (no noise), background elsewhere."""
         square_mm = float(board.getSquareLength())
-        tex = _charuco_texture(board)
-        H = self._board_map(
-            T_c_b, square_mm, offset_px=BOARD_MARGIN_SQUARES * TEXTURE_PX_PER_SQUARE
-        )
+        px = self._texture_px()
+        tex = _charuco_texture(board, px)
+        H = self._board_map(T_c_b, square_mm, px, offset_px=BOARD_MARGIN_SQUARES * px)
+        if self.area_sampled:
+            tex = _area_texture((id(board),), tex, H)
         out = cv2.remap(tex, H, _NO_MAP, cv2.INTER_LINEAR, borderValue=BACKGROUND_BGR[0])
         return np.asarray(out, dtype=np.uint8)
 
@@ -292,9 +307,14 @@ class SyntheticCamera:
             self._rays = np.ascontiguousarray(n, dtype=np.float32)
         return self._rays
 
+    def _texture_px(self) -> int:
+        """Texels per board square of the textures this camera samples."""
+        return TEXTURE_PX_PER_SQUARE if self.area_sampled else POINT_TEXTURE_PX_PER_SQUARE
+
     def _board_map(
-        self, T_c_b: FloatArray, square_mm: float, offset_px: float | None = None
-    ) -> npt.NDArray[np.float32]:
+        self, T_c_b: FloatArray, square_mm: float, px_per_square: int,
+        offset_px: float | None = None,
+    ) -> npt.NDArray[np.float32]:  # fmt: skip
         """Texture coordinates (H, W, 2) of each pixel through the board-plane homography.
 
         `offset_px` is where the board origin sits in the texture (pixel edges); the default is
@@ -304,10 +324,8 @@ class SyntheticCamera:
         # Pixel ray (x, y, 1) meets the plane z_b = 0: H maps board (X, Y, 1) to the ray; the
         # texture's scale and offset go into the same matrix (one pass over the pixels).
         Hm = np.column_stack([T_c_b[:3, 0], T_c_b[:3, 1], T_c_b[:3, 3]])
-        scale = TEXTURE_PX_PER_SQUARE / square_mm
-        edge = (
-            (BOARD_MARGIN_SQUARES + 1.0) * TEXTURE_PX_PER_SQUARE if offset_px is None else offset_px
-        )
+        scale = px_per_square / square_mm
+        edge = (BOARD_MARGIN_SQUARES + 1.0) * px_per_square if offset_px is None else offset_px
         off = edge - 0.5  # texture pixel centres sit at integers
         to_tex = np.array([[scale, 0.0, off], [0.0, scale, off], [0.0, 0.0, 1.0]])
         M = to_tex @ np.linalg.inv(Hm)
@@ -328,30 +346,82 @@ def chessboard_points(pattern: tuple[int, int], square_mm: float) -> FloatArray:
     return grid.astype(np.float64) * square_mm
 
 
-def _board_texture(cols: int, rows: int) -> UInt8Image:
+def _board_texture(cols: int, rows: int, px_per_square: int) -> UInt8Image:
     """Grey-level board: (cols+1) x (rows+1) squares with a white margin."""
-    s, m = TEXTURE_PX_PER_SQUARE, int(BOARD_MARGIN_SQUARES * TEXTURE_PX_PER_SQUARE)
+    s, m = px_per_square, int(BOARD_MARGIN_SQUARES * px_per_square)
     iy, ix = np.indices((rows + 1, cols + 1))
     squares = np.where((ix + iy) % 2 == 0, 20, 235).astype(np.uint8)
     tex = np.kron(squares, np.ones((s, s), dtype=np.uint8))
     return np.pad(tex, m, constant_values=235)
 
 
-# id → (board, texture): holding the board keeps its id from being reused
-_CHARUCO_TEXTURES: dict[int, tuple[cv2.aruco.CharucoBoard, UInt8Image]] = {}
+# (id, texels a square) → (board, texture): holding the board keeps its id from being reused
+_CHARUCO_TEXTURES: dict[tuple[int, int], tuple[cv2.aruco.CharucoBoard, UInt8Image]] = {}
 
 
-def _charuco_texture(board: cv2.aruco.CharucoBoard) -> UInt8Image:
-    """The board's printed image, TEXTURE_PX_PER_SQUARE per square and a white margin (cached)."""
-    key = id(board)
+def _charuco_texture(board: cv2.aruco.CharucoBoard, px_per_square: int) -> UInt8Image:
+    """The board's printed image, `px_per_square` a square and a white margin (cached)."""
+    key = (id(board), px_per_square)
     if key not in _CHARUCO_TEXTURES:
         cols, rows = board.getChessboardSize()
-        m, s = int(BOARD_MARGIN_SQUARES * TEXTURE_PX_PER_SQUARE), TEXTURE_PX_PER_SQUARE
+        m, s = int(BOARD_MARGIN_SQUARES * px_per_square), px_per_square
         img = board.generateImage((cols * s + 2 * m, rows * s + 2 * m), marginSize=m)
         # printed black and white are not 0 and 255: keep the sensor's headroom for noise
         tex = (20 + np.asarray(img, np.float32) * (215 / 255)).astype(np.uint8)
         _CHARUCO_TEXTURES[key] = (board, tex)
     return _CHARUCO_TEXTURES[key][1]
+
+
+# (texture's key, footprint in steps along x and y) → the prefiltered texture, oldest first
+_AREA_TEXTURES: dict[tuple[Any, ...], UInt8Image] = {}
+
+
+def _area_texture(key: tuple[Any, ...], tex: UInt8Image, H: npt.NDArray[np.float32]) -> UInt8Image:
+    """`tex` averaged over a pixel's footprint, for sampling through the map `H` (cached).
+
+    A pixel integrates the board over its footprint, the parallelogram its square maps to on the
+    texture (sides the map's derivatives along u and v). The texture is filtered by a separable
+    box whose widths along the texture's x and y are that footprint's (the root sum of squares
+    of its sides' components: the box has the footprint's variance along each axis), taken as
+    the median over a grid of the pixels that see the board: one box for the whole view, as the
+    footprint changes little over a board that fills part of the image. The bilinear sample at
+    the pixel's centre then adds a tent one texel wide, a fraction of a pixel. A footprint under
+    a texel (the board nearer than the texture is fine) leaves the texture as it is.
+    """
+    wx, wy = _footprint_texels(H, tex.shape[1], tex.shape[0])
+    nx, ny = round(wx / FOOTPRINT_STEP_TEXELS), round(wy / FOOTPRINT_STEP_TEXELS)
+    if max(nx, ny) * FOOTPRINT_STEP_TEXELS <= 1.0:
+        return tex
+    k = (*key, nx, ny)
+    if k not in _AREA_TEXTURES:
+        kx, ky = _box(nx * FOOTPRINT_STEP_TEXELS), _box(ny * FOOTPRINT_STEP_TEXELS)
+        out = cv2.sepFilter2D(tex, -1, kx, ky, borderType=cv2.BORDER_REPLICATE)
+        _AREA_TEXTURES[k] = np.asarray(out, dtype=np.uint8)
+        while len(_AREA_TEXTURES) > AREA_TEXTURES_KEPT:
+            del _AREA_TEXTURES[next(iter(_AREA_TEXTURES))]
+    return _AREA_TEXTURES[k]
+
+
+def _footprint_texels(H: npt.NDArray[np.float32], width: int, height: int) -> tuple[float, float]:
+    """Median extent (x, y) on the texture of a pixel that sees it, texels; (0, 0) if none does."""
+    g = FOOTPRINT_GRID_PX
+    at = H[:-1:g, :-1:g]
+    du = H[:-1:g, 1::g][:, : at.shape[1]] - at
+    dv = H[1::g, :-1:g][: at.shape[0]] - at
+    on = (at[..., 0] >= 0) & (at[..., 0] < width) & (at[..., 1] >= 0) & (at[..., 1] < height)
+    if not on.any():
+        return 0.0, 0.0
+    ext = np.hypot(du[on], dv[on])  # (n, 2): per texture axis, over the footprint's two sides
+    return float(np.median(ext[:, 0])), float(np.median(ext[:, 1]))
+
+
+def _box(width: float) -> npt.NDArray[np.float32]:
+    """A normalised box filter `width` taps wide, its end taps weighted by the fraction over."""
+    full = math.floor((width - 1.0) / 2.0)  # whole taps either side of the centre
+    end = (width - (2 * full + 1)) / 2.0
+    taps = np.ones(2 * full + 3)
+    taps[0] = taps[-1] = end
+    return np.asarray(taps / taps.sum(), dtype=np.float32)
 
 
 _NOISE_TABLES: dict[float, npt.NDArray[np.int16]] = {}

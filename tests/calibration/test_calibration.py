@@ -51,10 +51,13 @@ def test_intrinsics_recovered_from_rendered_chessboards() -> None:
     assert len(obj) >= 12
     res = calibrate_intrinsics(obj, img, truth.size)
     cam = res.camera
-    for key in ("fx", "fy", "u0", "v0", "k1"):
+    for key in ("fx", "fy", "u0", "v0"):
         assert getattr(cam, key) == pytest.approx(getattr(truth, key), rel=5e-3), key
-    # k2 multiplies r⁴ ≤ 0.0025 over a 20° field: only statistically determined.
-    assert abs(cam.k2 - truth.k2) < 3.0 * res.std["k2"]
+    # k1 multiplies r² ≤ 0.05 over a 20° field: determined to ~0.4 % (its σ here), so judged by
+    # it; k2 multiplies r⁴ ≤ 0.0025: only statistically determined.
+    for key in ("k1", "k2"):
+        assert abs(getattr(cam, key) - getattr(truth, key)) < 3.0 * res.std[key], key
+    assert res.std["k1"] < 5e-3 * truth.k1
     assert res.rms_px < 0.2
     assert res.to_config()["camera"]["fx"] == cam.fx
 
