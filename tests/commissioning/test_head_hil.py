@@ -112,7 +112,9 @@ async def test_head_and_check_through_the_real_daemon_on_the_emulator(hil_rig: R
         daemon.request_stop()
         with contextlib.suppress(Exception):
             await asyncio.wait_for(task, 10.0)
-    assert [r["passed"] for r in results.values()] == [True, True, True], {
+    # every step of the demo's plan passes (it grows: the plan, not a count, says which)
+    assert {"calibrate_intrinsics", "calibrate_head"} <= results.keys()
+    assert all(r["passed"] for r in results.values()), {
         op: r["reasons"] for op, r in results.items()
     }
     lens = results["calibrate_intrinsics"]
