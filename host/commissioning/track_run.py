@@ -287,14 +287,14 @@ def track_update(spec: RigSpec, fit: TrackFit, samples: int) -> dict[str, Any]:
             f"{track.placement.provenance.note}; moved {-delta:+.2f} mm along x by survey "
             "track").lstrip("; ")),
     )  # fmt: skip
-    out: dict[str, Any] = {"track.home": home, "track.placement": placement}
-    if spec.covariance is not None:
-        at_of = {n: slice(int(at[i]), int(at[i + 1])) for i, n in enumerate(blocks)}
-        keep = list(spec.covariance.names)
-        mats = {n: C2[at_of[n], at_of[n]] for n in keep}
-        pairs = {(a, b): C2[at_of[a], at_of[b]] for a in keep for b in keep if a < b}
-        joint: JointCovariance = joint_covariance(mats, pairs, spec.covariance.provenance)
-        out["covariance"] = joint
+    # the joint block over what it named and the two moved blocks: their cross term (−σ² of
+    # the survey, and what each shares with the camera's blocks) is what keeps the sum's σ
+    at_of = {n: slice(int(at[i]), int(at[i + 1])) for i, n in enumerate(blocks)}
+    mats = {n: C2[at_of[n], at_of[n]] for n in blocks}
+    pairs = {(a, b): C2[at_of[a], at_of[b]] for a in blocks for b in blocks if a < b}
+    joint_prov = spec.covariance.provenance if spec.covariance is not None else prov
+    joint: JointCovariance = joint_covariance(mats, pairs, joint_prov)
+    out: dict[str, Any] = {"track.home": home, "track.placement": placement, "covariance": joint}
     if track.marks.s_mm and track.marks.provenance.method != NOMINAL:
         out["track.marks"] = Marks(tuple(s + delta for s in track.marks.s_mm),
                                    track.marks.sigma_mm, track.marks.provenance)  # fmt: skip

@@ -118,8 +118,9 @@ def test_the_update_carries_a_joint_covariance_through() -> None:
     assert new.track.home.sigma == pytest.approx(fit.corner_sigma_mm)
     # the sum (zero + placement x), which the straight fixed, keeps its σ
     before = 25.0 + 25.0 + 2 * cov[3, 6]
-    m = new.covariance.matrix
-    after = m[3, 3] + m[6, 6] + 2 * m[3, 6]
+    m, at = new.covariance.matrix, new.covariance.slices()
+    tx, h = at["track.placement"].start + 3, at["track.home"].start
+    after = m[tx, tx] + m[h, h] + 2 * m[tx, h]
     assert after == pytest.approx(before, rel=1e-6)
 
 
