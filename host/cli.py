@@ -26,13 +26,14 @@ class Command:
 
 
 _OPS = "host.control.cli_commands"
+_MOTION = "host.control.cli_motion"  # the two that wait for the trolley
 COMMANDS: dict[str, Command] = {
     "status": Command(_OPS, "add_parsers", "show the daemon, link and controller state"),
-    "home": Command(_OPS, "add_parsers", "home the trolley"),
+    "home": Command(_MOTION, "add_parsers", "home the trolley (waits until it is homed)"),
     "stop": Command(_OPS, "add_parsers", "controlled stop"),
     "estop": Command(_OPS, "add_parsers", "emergency stop (latched until `clear`)"),
     "clear": Command(_OPS, "add_parsers", "clear a latched fault or e-stop"),
-    "move": Command(_OPS, "add_parsers", "move the trolley to an arc length"),
+    "move": Command(_MOTION, "add_parsers", "move the trolley to an arc length (waits there)"),
     "jog": Command(_OPS, "add_parsers", "move at constant velocity (0 stops)"),
     "head": Command(_OPS, "add_parsers", "point the pan/tilt head"),
     "watch": Command(_OPS, "add_parsers", "live view of pose, state and link"),

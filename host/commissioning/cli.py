@@ -385,6 +385,10 @@ def result_text(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+# the progress map's counts and how the line names them
+COUNTS = (("accepted", "kept"), ("blurred", "blurred"), ("not_found", "no board"))
+
+
 class ProgressView:
     """Progress on stderr: redrawn on a terminal, one line per view otherwise."""
 
@@ -403,8 +407,8 @@ class ProgressView:
         head = (
             f"{p.get('phase', '?')}: view {p.get('view', 0)}/{p.get('of', p.get('planned', '?'))}"
         )
-        counts = (p.get("accepted", 0), p.get("blurred", 0), p.get("not_found", 0))
-        head += "  kept {}  blurred {}  no board {}".format(*counts)
+        # only the counts this run reports: a rangefinder run has no board to blur or lose
+        head += "".join(f"  {name} {p[key]}" for key, name in COUNTS if key in p)
         if not self.tty:
             cov = p.get("coverage") or {}
             bars = " ".join(f"{k} {cov[k]:.2f}" for k in coverage.PARAMS if k in cov)

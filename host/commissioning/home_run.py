@@ -55,12 +55,28 @@ async def survey_home(
     ok = sigma <= MAX_SIGMA_MM
     why = f"home at s = {home:.2f} ± {sigma:.2f} mm (was {io.home_s_mm:.2f})" if ok else (
         f"σ {sigma:.2f} mm > {MAX_SIGMA_MM} mm")  # fmt: skip
+    result = {"passed": ok, "reasons": [why], "home_mm": home, "sigma_mm": sigma, "range_mm": d,
+              "slope": slope, "home_before_mm": io.home_s_mm}  # fmt: skip
+    return {**result, "table": home_table(result)}
+
+
+def home_table(result: dict[str, Any]) -> str:
+    """The survey's short table; the σ split into its parts when the beam origin's is in."""
     rows: list[list[str | float]] = [
-        ["home before (mm)", round(io.home_s_mm, 3)], ["home after (mm)", round(home, 3)],
-        ["σ (mm)", round(sigma, 3)], ["reading (mm)", round(d, 2)], ["∂range/∂s", round(slope, 3)],
-    ]  # fmt: skip
-    return {"passed": ok, "reasons": [why], "home_mm": home, "sigma_mm": sigma, "range_mm": d,
-            "slope": slope, "table": text_table(["quantity", "value"], rows)}  # fmt: skip
+        ["home before (mm)", round(result["home_before_mm"], 3)],
+        ["home after (mm)", round(result["home_mm"], 3)],
+        ["σ (mm)", round(result["sigma_mm"], 3)],
+    ]
+    if "rig_sigma_mm" in result:
+        rows += [
+            ["  σ of the reading (mm)", round(result["reading_sigma_mm"], 3)],
+            ["  σ of the beam origin (mm)", round(result["rig_sigma_mm"], 3)],
+        ]
+    rows += [
+        ["reading (mm)", round(result["range_mm"], 2)],
+        ["∂range/∂s", round(result["slope"], 3)],
+    ]
+    return text_table(["quantity", "value"], rows)
 
 
 def locate(

@@ -656,7 +656,9 @@ def with_rig_sigma(
         if ok
         else f"σ {sigma:.2f} mm > {max_sigma_mm} mm"
     )
-    return {**result, "passed": ok, "reasons": [why], "sigma_mm": sigma}
+    out = {**result, "passed": ok, "reasons": [why], "sigma_mm": sigma,
+           "reading_sigma_mm": result["sigma_mm"], "rig_sigma_mm": rig_sigma_mm}  # fmt: skip
+    return {**out, "table": home_run.home_table(out)} if "home_before_mm" in out else out
 
 
 class _NoCamera:

@@ -1,17 +1,7 @@
-"""`python -m host.control COMMAND …`: the control CLI before host/cli.py wires it in."""
+"""`python -m host.control COMMAND …`: the same command line as `orbitar` (host/cli.py)."""
 
-import argparse
 import sys
 
-from host.control.cli_commands import add_parsers
-
-
-def main() -> int:
-    """Parse and dispatch."""
-    parser = argparse.ArgumentParser(prog="orbitar")
-    add_parsers(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args()
-    return int(args.handler(args))
-
+from host.cli import main
 
 sys.exit(main())

@@ -50,17 +50,12 @@ def add_parsers(subparsers: Any) -> None:
     status = _socket_parser(subparsers, "status", "show the daemon, link and controller state")
     status.set_defaults(handler=run_status)
     simple = {
-        "home": "home the trolley",
         "stop": "controlled stop",
         "estop": "emergency stop (latched until `clear`)",
         "clear": "clear a latched fault or e-stop",
     }
     for name, text in simple.items():
         _socket_parser(subparsers, name, text).set_defaults(handler=_op_handler(name))
-    move = _socket_parser(subparsers, "move", "move the trolley to an arc length")
-    move.add_argument("mm", type=float, help="target position along the track, mm")
-    move.add_argument("--speed", type=float, help="cruise speed, mm/s")
-    move.set_defaults(handler=run_move)
     jog = _socket_parser(subparsers, "jog", "move at constant velocity (0 stops)")
     jog.add_argument("mm_s", type=float, help="velocity, mm/s (negative: backwards)")
     jog.set_defaults(handler=run_jog)
@@ -104,11 +99,6 @@ def _socket_parser(subparsers: Any, name: str, text: str) -> argparse.ArgumentPa
 def _op_handler(op: str) -> Handler:
     """A handler sending `op` without arguments."""
     return lambda args: request(args, op)
-
-
-def run_move(args: argparse.Namespace) -> int:
-    """`orbitar move MM [--speed MM_S]`."""
-    return request(args, "move", position_mm=args.mm, speed_mm_s=args.speed)
 
 
 def run_jog(args: argparse.Namespace) -> int:

@@ -61,6 +61,10 @@ class ControlClient:
             reply = await asyncio.wait_for(future, timeout_s)
         finally:
             self._pending.pop(request_id, None)
+            if future.done() and not future.cancelled():
+                future.exception()  # a failed write raised first: the reader's verdict is read
+            else:
+                future.cancel()
         if not reply.get("ok"):
             error = reply.get("error") or {}
             raise ControlRequestError(str(error.get("code")), str(error.get("message")))

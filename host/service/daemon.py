@@ -41,6 +41,7 @@ if TYPE_CHECKING:
     from host.bus.publisher import BusPublisher
 
 log = logging.getLogger(__name__)
+LATCHED = ("FAULT", "ESTOP")  # controller states that hold until `clear`
 
 RecordTap = Callable[[str, int, Any], None]  # kind, host time ns, data
 ControllerFactory = Callable[[Config, RecordTap], ControllerLike]
@@ -103,6 +104,7 @@ class Daemon:
         self.link_was_up = False
         self.drive_problem = ""  # the controller's chain is not the rig file's (empty: agrees)
         self._logged_cause = ""  # the link-down cause last logged
+        self._logged_latch: tuple[str, tuple[str, ...]] | None = None  # the latch last logged
         self.output_errors = 0
         self.exit_code = 0
         self.recorder: RecordingWriter | None = None
@@ -327,11 +329,28 @@ class Daemon:
     def _on_controller(self, change: ControllerChange) -> None:
         """A pushed change: a `state` event, or the link's new state."""
         if change.topic == "state":
+            self._log_latch(change.snapshot)
             self.server.publish("state", dict(change.snapshot))
             if self.bus is not None:
                 self.bus.publish_state(change.snapshot)
         elif change.topic == "link":
             self._on_link(change.snapshot)
+
+    def _log_latch(self, snap: Snapshot) -> None:
+        """A FAULT or ESTOP the controller latched, logged once with its faults by name and
+        where the trolley was (a later `orbitar status` shows the state, not when or where)."""
+        plain = dict(snap)
+        state = str(plain.get("state"))
+        latch = (state, tuple(plain.get("fault_names") or ())) if state in LATCHED else None
+        if latch == self._logged_latch:
+            return
+        if latch is not None:
+            kv = {"state": state, "faults": ",".join(latch[1]) or "none",
+                  "position_mm": plain.get("position_mm")}  # fmt: skip
+            log.warning("controller latched", extra={"kv": kv})
+        elif self._logged_latch is not None:
+            log.info("controller latch cleared", extra={"kv": {"state": state}})
+        self._logged_latch = latch
 
     def _on_link(self, snap: Snapshot) -> None:
         """The link moved: log it, record it, tell systemd (READY once) and the subscribers."""

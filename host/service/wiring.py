@@ -17,6 +17,8 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import numpy as np
+
 from host.commissioning.frames import FrameTap as LatestFrameTap
 from host.commissioning.frames import attach_range_tap
 from host.config import Config
@@ -24,8 +26,9 @@ from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import Frame, FrameSource, VideoCaptureSource
+from host.fusion import rig_references
 from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
-from host.fusion.range_fix import RangeFixConfig, RangeFixer
+from host.fusion.range_fix import RangeFixer
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
 from host.geometry.model import Wireframe, load_model, manipulator_wireframe
@@ -41,8 +44,8 @@ from host.link.shedding import SheddingConfig
 from host.recording.taps import FrameTap, attach_link_tap
 from host.recording.writer import KIND_ENCODER, KIND_EVENT, KIND_HEAD, KIND_RANGE
 from host.registration.pose_buffer import AngleBuffer, LookupStatus, PoseSource, SampleBuffer
-from host.registration.track_feed import PoseFeed
-from host.rig import RigError, RigSpec, build_kinematics, build_scene, current_rig
+from host.registration.track_feed import DEFAULT_CHAIN_PITCH_MM, PoseFeed
+from host.rig import RigError, RigSpec, build_kinematics, current_rig
 from host.rig import build_camera as build_camera_model
 from host.rig import build_track as rig_build_track
 from host.rig import workpiece_pose as rig_workpiece_pose
@@ -265,13 +268,19 @@ def build_rig(config: Config) -> Rig:
     return build_kinematics(rig_spec(config))  # validated on load: the path builds
 
 
-def build_ranger(config: Config, rig: Rig) -> RangeFixer | None:
-    """Rangefinder fixes on the rig file's surveyed surfaces, if it lists any."""
+def build_references(
+    config: Config, rig: Rig, pitch_mm: float | None
+) -> tuple[RangeFixer | None, ChainFilter | None]:
+    """The chain filter's references as the rig file describes them, with its σ: rangefinder
+    fixes on its surveyed surfaces (their mount, placement and surface errors held as the
+    filter's states) and its marks; no filter when it lists neither. The demo measures the
+    drift correction with these very ones (host.fusion.rig_references)."""
     spec = rig_spec(config)
-    scene = build_scene(spec)
-    if scene is None:
-        return None
-    return RangeFixer(rig, scene, RangeFixConfig(noise_mm=spec.rangefinder.noise_mm))
+    ranger = rig_references.ranger(spec, rig)
+    if ranger is None and not spec.track.marks.s_mm:
+        return None, None
+    pitch = pitch_mm or DEFAULT_CHAIN_PITCH_MM
+    return ranger, ChainFilter(rig_references.chain_config(spec, pitch))
 
 
 def build_camera(config: Config) -> CameraModel:
@@ -305,6 +314,7 @@ def build_pose_source(
     head_cap = max(MIN_BUFFER_SAMPLES, math.ceil(horizon_s * rates_hz.get(Stream.HEAD, 1)))
     spec = rig_spec(config)
     rig = build_rig(config)
+    ranger, chain = build_references(config, rig, pitch_mm())
     feed = PoseFeed(
         SampleBuffer(1, enc_cap, ENCODER_HORIZON_NS, MAX_GAP_NS),
         AngleBuffer(2, head_cap, HEAD_HORIZON_NS, MAX_GAP_NS),
@@ -312,7 +322,8 @@ def build_pose_source(
         marks_mm=spec.track.marks.s_mm,
         lap_mm=rig.track.length_mm if rig.track.closed else None,
         pitch_mm=pitch_mm,
-        ranger=build_ranger(config, rig),
+        ranger=ranger,
+        chain=chain,
     )
     latency_ns = round(exposure_latency_ms * 1e6)
     source = PoseSource(rig, feed.encoder, feed.head, exposure_latency_ns=latency_ns)
@@ -324,7 +335,8 @@ def apply_rig(config: Config, poses: PoseSource, feed: PoseFeed, latency_ms: flo
 
     The buffers keep their samples; those already pushed were placed with the old home and
     chain correction, which the next homing (or the next few samples, for a live trolley)
-    replaces.
+    replaces. The chain filter keeps its state unless the file changed what it rests on (the
+    references' σ, the range model's states): then it starts afresh, as at a homing.
     """
     spec = rig_spec(config)
     rig = build_rig(config)
@@ -333,9 +345,18 @@ def apply_rig(config: Config, poses: PoseSource, feed: PoseFeed, latency_ms: flo
     feed.home_s_mm = spec.track.home.value
     feed.marks_mm = spec.track.marks.s_mm
     feed.lap_mm = rig.track.length_mm if rig.track.closed else None
-    feed.ranger = build_ranger(config, rig)
-    if (feed.marks_mm or feed.ranger is not None) and feed.chain is None:
-        feed.chain = ChainFilter(ChainFilterConfig(chain_pitch_mm=feed.pitch_mm() or 12.7))
+    current = feed.chain.config.chain_pitch_mm if feed.chain is not None else feed.pitch_mm()
+    feed.ranger, chain = build_references(config, rig, current)
+    if chain is None or feed.chain is None or not _same_config(chain.config, feed.chain.config):
+        feed.chain = chain
+
+
+def _same_config(a: ChainFilterConfig, b: ChainFilterConfig) -> bool:
+    """Equal filter configurations (the bias covariance, an array, is left out of `==`)."""
+    a_cov, b_cov = a.bias_cov, b.bias_cov
+    if a_cov is None or b_cov is None:
+        return a == b and a_cov is b_cov
+    return a == b and a_cov.shape == b_cov.shape and bool(np.array_equal(a_cov, b_cov))
 
 
 def exposure_latency_ms(config: Config) -> float:

@@ -59,3 +59,31 @@ def test_the_first_home_survey_takes_the_drawings_sigma(
     assert op == "survey_home"
     assert req["tilt_rad"] == pytest.approx(math.pi / 2)
     assert (req["rig_sigma_mm"], req["max_sigma_mm"]) == (5.8, 10.0)
+
+
+def test_the_first_home_surveys_table_shows_the_sigma_it_judged_and_its_parts() -> None:
+    from host.commissioning.home_run import home_table
+    from host.commissioning.ops import with_rig_sigma
+
+    reading = {"passed": True, "reasons": ["…"], "home_mm": 376.4, "sigma_mm": 1.0,
+               "range_mm": 7623.8, "slope": -1.0, "home_before_mm": 450.0}  # fmt: skip
+    judged = with_rig_sigma({**reading, "table": home_table(reading)}, 5.8, 10.0)
+    rows = {r.rsplit(None, 1)[0].strip(): float(r.rsplit(None, 1)[1])
+            for r in judged["table"].splitlines()[2:]}  # fmt: skip
+    assert rows["σ (mm)"] == pytest.approx(math.hypot(1.0, 5.8), abs=1e-3)  # as the verdict says
+    assert rows["σ of the reading (mm)"] == 1.0
+    assert rows["σ of the beam origin (mm)"] == 5.8
+    assert f"± {rows['σ (mm)']:.2f} mm" in judged["reasons"][0]
+
+
+def test_the_progress_line_names_only_the_counts_the_run_reports() -> None:
+    import io
+
+    out = io.StringIO()
+    view = ccli.ProgressView(out)
+    view.show({"phase": "ranging", "view": 1, "of": 1})
+    view.show({"phase": "capturing", "view": 3, "of": 20, "accepted": 2, "blurred": 1,
+               "not_found": 0})  # fmt: skip
+    ranging, capturing = out.getvalue().splitlines()
+    assert ranging == "ranging: view 1/1"
+    assert capturing.startswith("capturing: view 3/20  kept 2  blurred 1  no board 0")

@@ -49,13 +49,45 @@ async def served(tmp_path: Path) -> AsyncIterator[tuple[ControlServer, MemoryCon
 async def test_motion_commands(served: tuple[ControlServer, MemoryController, str]) -> None:
     _, fake, sock = served
     assert (await cli("home", "--socket", sock))[0] == 0
-    code, out, _ = await cli("move", "1500", "--speed", "80", "--socket", sock)
+    code, out, _ = await cli("move", "1500", "--speed", "80", "--no-wait", "--socket", sock)
     assert (code, out.strip()) == (0, "ok")
     assert (await cli("head", "90", "-30", "--socket", sock))[0] == 0
     assert (await cli("estop", "--socket", sock))[0] == 0
     assert fake.calls[-3][1] == (1500.0, 80.0)
     assert fake.head_rad == pytest.approx((math.pi / 2, -math.pi / 6))
     assert fake.state.name == "ESTOP"
+
+
+async def test_home_and_move_wait_until_the_trolley_is_there(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
+    _, fake, sock = served
+    code, out, _ = await cli("home", "--socket", sock)
+    assert code == 0
+    assert out.startswith("home done: READY"), out
+    # the fake travels at 400 mm/s: the command returns once it is READY at 600 mm, not before
+    code, out, _ = await cli("move", "600", "--speed", "400", "--socket", sock)
+    assert code == 0
+    assert out.startswith("move done: READY"), out
+    assert "position 600.0 mm" in out, out
+    assert fake.position_mm == pytest.approx(600.0)
+    code, out, _ = await cli("move", "100", "--speed", "400", "--json", "--socket", sock)
+    assert code == 0
+    done = json.loads(out)
+    assert (done["state"], done["position_mm"]) == ("READY", pytest.approx(100.0))
+
+
+async def test_a_move_that_latches_exits_1_naming_the_state(
+    served: tuple[ControlServer, MemoryController, str],
+) -> None:
+    _, fake, sock = served
+    assert (await cli("home", "--socket", sock))[0] == 0
+    waiting = asyncio.create_task(cli("move", "5000", "--speed", "100", "--socket", sock))
+    await asyncio.sleep(1.5)  # the command is following the move by now
+    await fake.estop()
+    code, _, err = await asyncio.wait_for(waiting, 30)
+    assert code == 1
+    assert "move: the controller latched: ESTOP" in err, err
 
 
 async def test_status_reads_in_degrees_millimetres_and_ages(

@@ -25,7 +25,7 @@ from host.service import wiring
 from host.service.daemon import Daemon
 from host.service.notify import Notifier
 from protocol import PARAMS, ParamId
-from protocol.enums import Inputs, State
+from protocol.enums import Fault, Inputs, State
 from protocol.messages import EncoderSample, HeadSample, Status
 from tests.link.fake_controller import FakeController
 
@@ -152,6 +152,25 @@ async def test_unknown_state_fault_and_nak_are_numbers_not_a_crash(
     assert sum("State 77" in n for n in notes) == 1  # logged once, however often it came
     assert sum("Fault bit 32768" in n for n in notes) == 1
     assert sum("NAK code 99" in n for n in notes) == 1
+
+
+async def test_a_latched_fault_is_logged_once_with_its_names_and_where(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO)
+    config = loads_config(config_text(tmp_path))
+    async with serve(config, tmp_path) as served:
+        for i in range(4):  # the controller repeats its STATUS while it stays latched
+            served.emulator.send(Status(i, int(State.FAULT), int(Fault.WATCHDOG), HOMED, 2500, 1))
+            await asyncio.sleep(0.15)
+        served.emulator.send(Status(9, int(State.READY), 0, HOMED, 2500, 1))
+        await asyncio.sleep(0.3)
+    latched = [r for r in caplog.records if r.getMessage() == "controller latched"]
+    assert len(latched) == 1, [r.getMessage() for r in caplog.records]
+    kv = latched[0].kv  # type: ignore[attr-defined]
+    assert (kv["state"], kv["faults"], kv["position_mm"]) == ("FAULT", "WATCHDOG", 2.5)
+    assert latched[0].levelno == logging.WARNING
+    assert sum(r.getMessage() == "controller latch cleared" for r in caplog.records) == 1
 
 
 OPEN_TRACK = """[track.home]
