@@ -298,18 +298,17 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
 
     The home first, by the rangefinder on the end wall ahead (σ from the drawing's rig: the
     beam's origin is only known that well until the head is calibrated); intrinsics around the
-    board; the head from three stations (the home's σ goes into the track's); the latency from
-    passes past the board; the track survey through the first corner (its place relative to the
-    zero and the arcs' radius, which no view on the first straight sees: the zero and the
-    placement move together), after the latency, which reads the daemon's pose feed: over the
-    survey's travel that feed took marks for tooth skips (a zero more than half a pitch off)
-    and stood 10 pitches off after it (docs/COMMISSIONING.md); the acceptance test of the
-    board's chain from two stations not used to calibrate; last the workpiece by the camera,
-    targets on its feature points triangulated through the calibrated rig from stations around
-    where it is watched. The check and the latency need nothing of the workpiece (nor the check
-    of the latency: its views are taken at rest), and the workpiece's stations lie between the
-    board's and home: the trolley ends the session near home, where the experiments home it
-    again.
+    board; the head from three stations (the home's σ goes into the track's); the track survey
+    through the first corner (its place relative to the zero and the arcs' radius, which no
+    view on the first straight sees: the zero and the placement move together; with the zero
+    right the daemon's pose feed no longer takes the marks for tooth skips, which biased the
+    latency of seed 2: docs/COMMISSIONING.md); the latency from passes past the board; the
+    acceptance test of the board's chain from two stations not used to calibrate; last the
+    workpiece by the camera, targets on its feature points triangulated through the calibrated
+    rig from stations around where it is watched. The check and the latency need nothing of
+    the workpiece (nor the check of the latency: its views are taken at rest), and the
+    workpiece's stations lie between the board's and home: the trolley ends the session near
+    home, where the experiments home it again.
     """
     s = setup.s_mm
     stations, check = board_stations(rigs, s)
@@ -330,11 +329,11 @@ def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
             **sigma,
         )  # the intrinsics run's views: the same board, stations and zero
     )  # fmt: skip
+    plan.add("survey_track")  # the first corner and the arcs' radius: nothing above sees them
     plan.add(
         "calibrate_latency", board_pose=pose, board=board, station_mm=s, span_mm=LATENCY_SPAN_MM,
         speed_mm_s=LATENCY_SPEED_MM_S, passes=LATENCY_PASSES,
     )  # fmt: skip
-    plan.add("survey_track")  # the first corner and the arcs' radius: nothing above sees them
     plan.add(
         "calibrate_check", board_pose=pose, board=board, stations_mm=check,
         image_targets=[list(t) for t in CHECK_TARGETS],
