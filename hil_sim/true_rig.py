@@ -211,6 +211,17 @@ def parameter_errors(estimate: RigSpec, truth: RigSpec) -> dict[str, dict[str, f
         "truth": truth.track.home.value,
         "sigma": estimate.track.home.sigma,
     }
+    arcs = [
+        (e.radius_mm, t.radius_mm)
+        for e, t in zip(estimate.track.segments, truth.track.segments, strict=False)
+        if e.kind == "arc" and t.kind == "arc"
+    ]
+    if arcs:  # one error shared by a loop's arcs: the first arc's radius stands for them
+        out["track.arc_radius_mm"] = {
+            "estimate": arcs[0][0],
+            "truth": arcs[0][1],
+            "sigma": estimate.track.arc_radius_sigma_mm,
+        }
     out["camera.latency_ms"] = {
         "estimate": estimate.camera.latency.value,
         "truth": truth.camera.latency.value,

@@ -122,6 +122,22 @@ def add_parsers(subparsers: Any) -> None:
     marks.add_argument("--marks", type=int, nargs="+", metavar="INDEX",
                        help="only these of the listed marks (0-based; default all)")  # fmt: skip
     marks.set_defaults(handler=run_survey_marks)
+    track = _common(
+        ssub.add_parser(
+            "track", help="the first corner's place along the track and the arcs' radius"
+        )
+    )
+    track.add_argument("--stations", type=float, nargs="+", metavar="S_MM",
+                       help="arc lengths to range from (default: one on the first straight, "
+                       "two through the first arc, one past it)")  # fmt: skip
+    track.add_argument("--pans", type=int, default=8, help="head pans per station")
+    track.add_argument("--samples", type=int, default=5, help="readings averaged per pose")
+    track.add_argument("--max-corner-sigma", type=float, metavar="MM",
+                       help="pass threshold on the corner's σ, mm (default 1.5)")  # fmt: skip
+    track.add_argument("--max-radius-sigma", type=float, metavar="MM",
+                       help="pass threshold on the radius' σ, mm (default 1.5)")  # fmt: skip
+    track.add_argument("--max-rms", type=float, help="pass threshold, mm (default 2.0)")
+    track.set_defaults(handler=run_survey_track)
 
 
 def _common(p: argparse.ArgumentParser, speed: bool = True) -> argparse.ArgumentParser:
@@ -279,6 +295,20 @@ def run_survey_marks(args: argparse.Namespace) -> int:
         if value is not None:
             req[key] = value
     return follow(args, "survey_marks", req)
+
+
+def run_survey_track(args: argparse.Namespace) -> int:
+    """`orbitar survey track`."""
+    req: dict[str, Any] = {"samples": args.samples, "pans": args.pans, "write": not args.no_write}
+    if args.stations:
+        req["stations_mm"] = list(args.stations)
+    for key, value in (
+        ("max_corner_sigma_mm", args.max_corner_sigma), ("max_radius_sigma_mm",
+        args.max_radius_sigma), ("max_rms_mm", args.max_rms), ("speed_mm_s", args.speed),
+    ):  # fmt: skip
+        if value is not None:
+            req[key] = value
+    return follow(args, "survey_track", req)
 
 
 def run_calibrate_rangefinder(args: argparse.Namespace) -> int:

@@ -28,6 +28,7 @@ from host.commissioning import (
     rangefinder_run,
     survey_run,
     targets_run,
+    track_run,
 )
 from host.commissioning.env import CommissioningEnv
 from host.commissioning.frames import FrameTap
@@ -605,6 +606,41 @@ async def op_calibrate_rangefinder(ctx: OpContext, args: Mapping[str, Any]) -> A
     return _start(env, "rangefinder", run)
 
 
+async def op_survey_track(ctx: OpContext, args: Mapping[str, Any]) -> Any:
+    """Start a track survey (the first corner's place, the arcs' radius): stations_mm, pans,
+    samples, speed_mm_s, max_corner_sigma_mm, max_radius_sigma_mm, max_rms_mm."""
+    env = env_of(ctx)
+    where = None if args.get("stations_mm") is None else stations(args, ctx)
+    pans = count(args, "pans", track_run.DEFAULT_PANS, 3, 72)
+    samples = count(args, "samples", 5, 1, 100)
+    speed = number({"speed_mm_s": TRAVEL_SPEED_MM_S, **args}, "speed_mm_s", 1.0, MAX_SPEED_MM_S)
+    base = track_run.TrackThresholds()
+    limits = track_run.TrackThresholds(
+        number({"max_corner_sigma_mm": base.max_corner_sigma_mm, **args},
+               "max_corner_sigma_mm", 0.01, 100.0),
+        number({"max_radius_sigma_mm": base.max_radius_sigma_mm, **args},
+               "max_radius_sigma_mm", 0.01, 100.0),
+        number({"max_rms_mm": base.max_rms_mm, **args}, "max_rms_mm", 0.01, 100.0),
+    )  # fmt: skip
+    controller, tap = _ranging(ctx, env)
+    tilt_limits = ctx.tilt_limits_rad
+
+    async def run(progress: Progress) -> dict[str, Any]:
+        spec = env.spec()
+        views = track_run.plan(spec, where, pans, tilt_limits)
+        if isinstance(views, str):
+            raise AbortedError(views)
+        progress["planned"] = len(views)
+        io = _survey_io(env, controller, speed)
+        fit, missed = await track_run.survey_track(io, tap, spec, views, samples, limits, progress)
+        result = {**fit.summary(), "planned": len(views), "no_reading": missed}
+        updates = track_run.track_update(spec, fit, samples) if fit.passed else None
+        page = track_run.track_page(fit, limits)
+        return await _conclude(env, args, progress, "track", result, page, updates)
+
+    return _start(env, "track", run)
+
+
 def with_rig_sigma(
     result: dict[str, Any], rig_sigma_mm: float, max_sigma_mm: float
 ) -> dict[str, Any]:
@@ -723,6 +759,7 @@ COMMISSIONING_OPS: dict[str, tuple[Handler, Role]] = {
     "survey_home": (op_survey_home, Role.OPERATOR),
     "survey_marks": (op_survey_marks, Role.OPERATOR),
     "calibrate_rangefinder": (op_calibrate_rangefinder, Role.OPERATOR),
+    "survey_track": (op_survey_track, Role.OPERATOR),
     "commissioning_status": (op_commissioning_status, Role.VIEWER),
     "commissioning_cancel": (op_commissioning_cancel, Role.OPERATOR),
 }

@@ -4,8 +4,11 @@ The host predicts a reading with `host.geometry.rangefinder` (the beam cast into
 scene). A fit, or the σ of a quantity solved from a reading, needs that prediction as a smooth
 function of the blocks that carry uncertainty: the mount T_r_l and the track's placement
 T_w_track (each moved by a local perturbation T · exp(δ), the rig schema's convention), the
-trolley's arc length and each surveyed surface's offset along its normal. Readings keep the
-surface the calibrated rig's beam met, so the function has no jumps.
+trolley's arc length, each surveyed surface's offset along its normal, and two scalars of the
+track no board view on the first straight sees: where its first corner lies along the track
+relative to the zero, and a change of every arc's radius (bent on one jig). Readings keep the
+surface the calibrated rig's beam met, so the function has no jumps. `RangeSolver` fits any of
+these blocks to readings by Gauss-Newton, each free or held by the rig file's σ as a prior.
 """
 
 from __future__ import annotations
@@ -109,16 +112,23 @@ def predict(
     placement: FloatArray | None = None,
     ds_mm: float = 0.0,
     offsets_mm: FloatArray | None = None,
+    corner_mm: float = 0.0,
+    radius_mm: float = 0.0,
 ) -> FloatArray:
     """Predicted distances with the blocks perturbed: mount and placement δ (6 each), a shift
-    of every arc length and each surface moved along its normal."""
+    of every arc length, each surface moved along its normal, the first corner moved along the
+    track (`corner_shift`) and every arc's radius changed by `radius_mm`."""
     if mount is not None:
         rig = dataclasses.replace(rig, T_r_l=local(rig.T_r_l, mount))
     if placement is not None:
         rig = dataclasses.replace(
             rig, track=rig.track.with_origin(local(rig.track.T_w_track, placement))
         )
-    T = rig.T_w_r(poses.s_mm + ds_mm, poses.pan_rad, poses.tilt_rad) @ rig.T_r_l
+    if radius_mm:
+        rig = dataclasses.replace(rig, track=rig.track.with_arc_radius_change(radius_mm))
+    if corner_mm:
+        rig = corner_shift(rig, corner_mm)
+    T = rig.T_w_r(poses.s_mm + ds_mm + corner_mm, poses.pan_rad, poses.tilt_rad) @ rig.T_r_l
     o, z = T[..., :3, 3], T[..., :3, 2]
     n = hall.normals[poses.surface]
     p = hall.points[poses.surface]
@@ -126,6 +136,113 @@ def predict(
         p = p + n * offsets_mm[poses.surface][:, None]
     out: FloatArray = np.einsum("ij,ij->i", n, p - o) / np.einsum("ij,ij->i", n, z)
     return out
+
+
+def corner_shift(rig: Rig, corner_mm: float) -> Rig:
+    """The track placed `corner_mm` back along its first straight (the track frame's x), for a
+    zero `corner_mm` further along: every pose on the first straight stays where it was, the
+    first corner comes `corner_mm` sooner (the caller adds `corner_mm` to the arc lengths)."""
+    back = make_T(np.eye(3), [-corner_mm, 0.0, 0.0])
+    return dataclasses.replace(rig, track=rig.track.with_origin(rig.track.T_w_track @ back))
+
+
+@dataclass(frozen=True)
+class FitTerms:
+    """Which blocks a `RangeSolver` fits besides the placement and the surfaces (always held by
+    the rig file's σ): the mount's axes (free, or held by the rig file's covariance), a free
+    shift of every arc length, the first corner's place (free) and an arc-radius change (held
+    by `radius_sigma_mm`, the drawing's σ; None: not fitted)."""
+
+    mount_axes: tuple[int, ...] = (0, 1, 3, 4, 5)
+    mount_prior: bool = False
+    shift: bool = True
+    corner: bool = False
+    radius_sigma_mm: float | None = None
+
+    def layout(self) -> dict[str, slice]:
+        """Where each block sits in the parameter vector (before the surfaces' offsets)."""
+        sizes = {"mount": len(self.mount_axes), "shift": int(self.shift),
+                 "corner": int(self.corner), "radius": int(self.radius_sigma_mm is not None),
+                 "placement": 6}  # fmt: skip
+        out, at = {}, 0
+        for name, n in sizes.items():
+            out[name] = slice(at, at + n)
+            at += n
+        return out
+
+    @property
+    def free(self) -> int:
+        """How many parameters no prior holds."""
+        return (
+            (0 if self.mount_prior else len(self.mount_axes)) + int(self.shift) + int(self.corner)
+        )
+
+
+class RangeSolver:
+    """Gauss-Newton over the `FitTerms` blocks, the placement (prior: the rig file's
+    covariance) and one offset per surface (prior: its survey σ), whitened by each reading's σ."""
+
+    def __init__(
+        self, rig: Rig, hall: Hall, poses: Poses, d: FloatArray, sig: FloatArray, spec: RigSpec,
+        terms: FitTerms,
+    ) -> None:  # fmt: skip
+        self.rig, self.hall, self.poses, self.d, self.sig = rig, hall, poses, d, sig
+        self.terms, self.at = terms, terms.layout()
+        self.k = len(hall.points)
+        self.n = self.at["placement"].stop + self.k
+
+        def whiten(cov: FloatArray) -> FloatArray:  # a zero σ pins that component
+            out: FloatArray = np.linalg.inv(np.linalg.cholesky(cov + 1e-12 * np.eye(len(cov))))
+            return out
+
+        axes = list(terms.mount_axes)
+        self.prior_p = whiten(spec.track.placement.cov())
+        self.prior_m = whiten(spec.rangefinder.mount.cov()[np.ix_(axes, axes)])
+        self.prior_b = 1.0 / np.maximum(hall.sigma_mm, 1e-6)
+        self.prior_r = 1.0 / max(terms.radius_sigma_mm or 0.0, 1e-6)
+        self.steps = np.concatenate([DIFF_STEPS[axes], [1e-3] * (int(terms.shift) + int(
+            terms.corner) + int(terms.radius_sigma_mm is not None)), DIFF_STEPS,
+            np.full(self.k, 1e-3)])  # fmt: skip
+
+    def value(self, x: FloatArray, block: str) -> float:
+        """A scalar block's value in x (0 when it is not fitted)."""
+        sl = self.at[block]
+        return float(x[sl][0]) if sl.stop > sl.start else 0.0
+
+    def ranges(self, x: FloatArray) -> FloatArray:
+        m = np.zeros(6)
+        m[list(self.terms.mount_axes)] = x[self.at["mount"]]
+        return predict(
+            self.rig, self.hall, self.poses, m, x[self.at["placement"]], self.value(x, "shift"),
+            x[self.at["placement"].stop :], self.value(x, "corner"), self.value(x, "radius"),
+        )  # fmt: skip
+
+    def _residuals(self, x: FloatArray, inliers: np.ndarray) -> FloatArray:
+        data = ((self.d - self.ranges(x)) / self.sig)[inliers]
+        p = self.at["placement"]
+        priors = [-self.prior_p @ x[p], -self.prior_b * x[p.stop :]]
+        if self.terms.mount_prior:
+            priors.append(-self.prior_m @ x[self.at["mount"]])
+        if self.terms.radius_sigma_mm is not None:
+            priors.append(-self.prior_r * x[self.at["radius"]])
+        return np.concatenate([data, *priors])
+
+    def chi2_dof(self, x: FloatArray, inliers: np.ndarray) -> float:
+        data = ((self.d - self.ranges(x)) / self.sig)[inliers]
+        return float(data @ data) / max(int(inliers.sum()) - self.terms.free, 1)
+
+    def solve(self, inliers: np.ndarray, iterations: int = 20) -> tuple[FloatArray, FloatArray]:
+        """The minimum and the whitened Jacobian there (rows: inlier data, then priors)."""
+        x = np.zeros(self.n)
+        J = np.zeros((0, x.size))
+        for _ in range(iterations):
+            J = -jacobian(lambda v: self._residuals(v, inliers), x, self.steps)
+            step = np.linalg.lstsq(J, self._residuals(x, inliers), rcond=None)[0]
+            x = x + step
+            if np.all(np.abs(step) < 0.1 * self.steps):
+                break
+        J = -jacobian(lambda v: self._residuals(v, inliers), x, self.steps)
+        return x, J
 
 
 def jacobian(f: Callable[[FloatArray], FloatArray], x: FloatArray, steps: FloatArray) -> FloatArray:

@@ -34,14 +34,13 @@ from host.commissioning.jobs import Progress
 from host.commissioning.motion import RigIO
 from host.commissioning.plan import ViewTarget
 from host.commissioning.range_model import (
-    DIFF_STEPS,
+    FitTerms,
     Hall,
     Poses,
+    RangeSolver,
     clean_hit,
-    jacobian,
     kinematics_of,
     local,
-    predict,
 )
 from host.commissioning.report import Page, pyplot, text_table
 from host.geometry.head import Rig
@@ -52,7 +51,7 @@ MOUNT_NAMES = ("ωx (mrad)", "ωy (mrad)", "tx (mm)", "ty (mm)", "tz (mm)")
 MOUNT_AXES = (0, 1, 3, 4, 5)  # of the schema's (ωx, ωy, ωz, tx, ty, tz): ωz is unobservable
 OUTLIER_SIGMAS = 4.0
 OUTLIER_ROUNDS = 3
-GN_ITERATIONS = 20
+
 RANK_RTOL = 1e-9
 RANGE_TIMEOUT_S = 3.0
 MAX_SPREAD_FACTOR = 5.0  # a pose whose readings scatter this much over the noise is on an edge
@@ -202,50 +201,23 @@ def fit_mount(
     rig, hall = kinematics_of(spec)
     if hall is None:
         return MountFit(False, ["the rig file lists no surveyed surfaces to range against"], T0)
-    noise = spec.rangefinder.noise_mm
-    kept = [
-        (x, j)
-        for x in samples
-        if x.spread_mm <= MAX_SPREAD_FACTOR * max(noise, 0.1)
-        and (j := clean_hit(rig, hall, x.s_mm, x.pan_rad, x.tilt_rad)) is not None
-    ]
-    distinct = {(round(x.s_mm), round(x.pan_rad, 3), round(x.tilt_rad, 3)) for x, _ in kept}
-    if len(distinct) < limits.min_poses:
-        where = "all readings come from one pose" if len(distinct) <= 1 else (
-            f"readings from {len(distinct)} distinct poses")  # fmt: skip
+    got = clean_readings(spec, rig, hall, samples)
+    if got.distinct < limits.min_poses:
+        where = "all readings come from one pose" if got.distinct <= 1 else (
+            f"readings from {got.distinct} distinct poses")  # fmt: skip
         return MountFit(False, [
             f"{where}: the mount needs ≥ {limits.min_poses} poses with clean hits, "
-            "at several head angles and trolley positions"], T0, poses=len(distinct))  # fmt: skip
-    used = sorted({j for _, j in kept})
-    remap = {j: i for i, j in enumerate(used)}
-    sub = Hall(hall.scene, hall.points[used], hall.normals[used], hall.sigma_mm[used])
-    poses = Poses(
-        np.array([x.s_mm for x, _ in kept]),
-        np.array([x.pan_rad for x, _ in kept]),
-        np.array([x.tilt_rad for x, _ in kept]),
-        np.array([remap[j] for _, j in kept]),
-    )
-    d = np.array([x.distance_mm for x, _ in kept])
-    sig = np.array([max(noise, 0.05) / math.sqrt(x.count) for x, _ in kept])
-    solver = _Solver(rig, sub, poses, d, sig, spec)
-    inliers = np.ones(len(d), dtype=bool)
-    for _ in range(OUTLIER_ROUNDS):
-        x, J = solver.solve(inliers)
-        r = d - solver.ranges(x)
-        out = np.abs(r) > OUTLIER_SIGMAS * sig * max(1.0, solver.chi2_dof(x, inliers) ** 0.5)
-        new = ~out
-        if np.array_equal(new, inliers) or new.sum() < limits.min_poses:
-            break
-        inliers = new
-    x, J = solver.solve(inliers)
-    r = d - solver.ranges(x)
+            "at several head angles and trolley positions"], T0, poses=got.distinct)  # fmt: skip
+    used, d, sig = got.used, got.d, got.sig
+    solver = RangeSolver(rig, got.hall, got.poses, d, sig, spec, FitTerms(MOUNT_AXES))
+    x, J, inliers, r = robust_solve(solver, limits.min_poses)
     names = [hall.scene.surfaces[j].name for j in used]
     sv = np.linalg.svd(J, compute_uv=False)
     if sv[-1] <= RANK_RTOL * sv[0]:
         return MountFit(False, [
             "the poses do not fix the mount (its information matrix is singular): take poses "
             "at more head angles and trolley positions, against more than one surface"],
-            T0, residuals_mm=r, inliers=inliers, surfaces=names, poses=len(distinct))  # fmt: skip
+            T0, residuals_mm=r, inliers=inliers, surfaces=names, poses=got.distinct)  # fmt: skip
     chi2 = solver.chi2_dof(x, inliers)
     cov = np.linalg.inv(J.T @ J) * max(1.0, chi2)
     cov_m = cov[:5, :5]
@@ -281,49 +253,65 @@ def fit_mount(
         )
     shift = (float(x[5]), float(np.sqrt(cov[5, 5])))
     return MountFit(passed, reasons, T0, T, full, x[:5].copy(), sigma, r, inliers, names, rms,
-                    chi2, condition, *shift, len(distinct))  # fmt: skip
+                    chi2, condition, *shift, got.distinct)  # fmt: skip
 
 
-class _Solver:
-    """Gauss-Newton over (mount 5, arc-length shift, placement 6, one offset per surface)."""
+@dataclass(frozen=True)
+class Readings:
+    """The samples a fit uses: those with a clean hit and a tight spread, over the surfaces
+    they met (`used`: indices into the rig file's hall; `hall` holds only those)."""
 
-    def __init__(
-        self, rig: Rig, hall: Hall, poses: Poses, d: FloatArray, sig: FloatArray, spec: RigSpec
-    ) -> None:
-        self.rig, self.hall, self.poses, self.d, self.sig = rig, hall, poses, d, sig
-        self.k = len(hall.points)
-        cov_p = spec.track.placement.cov()
-        # whiten the placement prior (a zero σ pins that component)
-        self.prior_p = np.linalg.inv(np.linalg.cholesky(cov_p + 1e-12 * np.eye(6)))
-        self.prior_b = 1.0 / np.maximum(hall.sigma_mm, 1e-6)
-        self.steps = np.concatenate([DIFF_STEPS[list(MOUNT_AXES)], [1e-3], DIFF_STEPS,
-                                     np.full(self.k, 1e-3)])  # fmt: skip
+    hall: Hall
+    poses: Poses
+    d: FloatArray  # mean readings
+    sig: FloatArray  # their σ (noise / √count)
+    used: list[int]
+    distinct: int  # distinct poses among them
 
-    def ranges(self, x: FloatArray) -> FloatArray:
-        m = np.zeros(6)
-        m[list(MOUNT_AXES)] = x[:5]
-        return predict(self.rig, self.hall, self.poses, m, x[6:12], float(x[5]), x[12:])
 
-    def _residuals(self, x: FloatArray, inliers: np.ndarray) -> FloatArray:
-        data = ((self.d - self.ranges(x)) / self.sig)[inliers]
-        return np.concatenate([data, -self.prior_p @ x[6:12], -self.prior_b * x[12:]])
+def clean_readings(spec: RigSpec, rig: Rig, hall: Hall, samples: list[RangeSample]) -> Readings:
+    """Keep the samples whose beam met one surface cleanly and whose readings did not scatter
+    (a spot on an edge), as the fits take them."""
+    noise = spec.rangefinder.noise_mm
+    kept = [
+        (x, j)
+        for x in samples
+        if x.spread_mm <= MAX_SPREAD_FACTOR * max(noise, 0.1)
+        and (j := clean_hit(rig, hall, x.s_mm, x.pan_rad, x.tilt_rad)) is not None
+    ]
+    distinct = {(round(x.s_mm), round(x.pan_rad, 3), round(x.tilt_rad, 3)) for x, _ in kept}
+    used = sorted({j for _, j in kept})
+    remap = {j: i for i, j in enumerate(used)}
+    sub = Hall(hall.scene, hall.points[used], hall.normals[used], hall.sigma_mm[used])
+    poses = Poses(
+        np.array([x.s_mm for x, _ in kept]),
+        np.array([x.pan_rad for x, _ in kept]),
+        np.array([x.tilt_rad for x, _ in kept]),
+        np.array([remap[j] for _, j in kept], dtype=int),
+    )
+    d = np.array([x.distance_mm for x, _ in kept])
+    sig = np.array([max(noise, 0.05) / math.sqrt(x.count) for x, _ in kept])
+    return Readings(sub, poses, d, sig, used, len(distinct))
 
-    def chi2_dof(self, x: FloatArray, inliers: np.ndarray) -> float:
-        data = ((self.d - self.ranges(x)) / self.sig)[inliers]
-        return float(data @ data) / max(int(inliers.sum()) - 6, 1)
 
-    def solve(self, inliers: np.ndarray) -> tuple[FloatArray, FloatArray]:
-        """The minimum and the whitened Jacobian there (rows: inlier data, then priors)."""
-        x = np.zeros(12 + self.k)
-        J = np.zeros((0, x.size))
-        for _ in range(GN_ITERATIONS):
-            J = -jacobian(lambda v: self._residuals(v, inliers), x, self.steps)
-            step = np.linalg.lstsq(J, self._residuals(x, inliers), rcond=None)[0]
-            x = x + step
-            if np.all(np.abs(step) < 0.1 * self.steps):
-                break
-        J = -jacobian(lambda v: self._residuals(v, inliers), x, self.steps)
-        return x, J
+def robust_solve(
+    solver: RangeSolver, min_poses: int
+) -> tuple[FloatArray, FloatArray, np.ndarray, FloatArray]:
+    """Solve, drop readings off by more than OUTLIER_SIGMAS (scaled by √(χ²/dof) when above 1)
+    and solve again, up to OUTLIER_ROUNDS; the solution, its whitened Jacobian, the inliers and
+    every reading's residual."""
+    d, sig = solver.d, solver.sig
+    inliers = np.ones(len(d), dtype=bool)
+    for _ in range(OUTLIER_ROUNDS):
+        x, J = solver.solve(inliers)
+        r = d - solver.ranges(x)
+        out = np.abs(r) > OUTLIER_SIGMAS * sig * max(1.0, solver.chi2_dof(x, inliers) ** 0.5)
+        new = ~out
+        if np.array_equal(new, inliers) or new.sum() < min_poses:
+            break
+        inliers = new
+    x, J = solver.solve(inliers)
+    return x, J, inliers, d - solver.ranges(x)
 
 
 def mount_update(fit: MountFit) -> dict[str, Any]:

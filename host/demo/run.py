@@ -296,6 +296,7 @@ def calibrated_blocks(spec: RigSpec) -> list[str]:
         "head.m_cr": spec.head.m_cr.provenance,
         "track.placement": spec.track.placement.provenance,
         "track.home": spec.track.home.provenance,
+        "track.arcs": spec.track.arcs,
         "camera.latency": spec.camera.latency.provenance,
         "rangefinder.mount": spec.rangefinder.mount.provenance,
         "workpiece.frame": spec.workpiece.frame.provenance,

@@ -164,6 +164,22 @@ class Track:
         """The same path placed in the world by another T_w_track (e.g. a calibrated one)."""
         return Track(self.segments, np.asarray(T_w_track, dtype=np.float64), self.closed)
 
+    def with_arc_radius_change(self, d_radius_mm: float) -> Track:
+        """The same path with every arc's radius changed by `d_radius_mm`, each turning the same
+        angle (arcs bent on one jig); open when the changed path no longer closes."""
+        segs = tuple(_bent(g, d_radius_mm) for g in self.segments)
+        probe = Track(segs, self.T_w_track, closed=False)
+        return Track(segs, self.T_w_track, self.closed and probe.closes())
+
+
+def _bent(g: Segment, d_radius_mm: float) -> Segment:
+    """A segment with its radius changed (a straight as it is), turning the same angle."""
+    if g.curvature_per_mm == 0.0:
+        return g
+    radius = 1.0 / abs(g.curvature_per_mm) + d_radius_mm
+    angle = g.length_mm * g.curvature_per_mm
+    return Segment(radius * abs(angle), math.copysign(1.0 / radius, angle))
+
 
 def _advance(d: ArrayLike, k: ArrayLike, h0: ArrayLike) -> FloatArray:
     """Chord vector after running d along curvature k from heading h0 (straights: k = 0)."""

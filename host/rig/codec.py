@@ -240,7 +240,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         "track",
         (
             "segments", "placement", "closed", "home", "marks", "travel_min_mm", "travel_max_mm",
-            "arc_radius_sigma_mm", "chain",
+            "arc_radius_sigma_mm", "chain", "arcs",
         ),
     )  # fmt: skip
     segments = default.segments
@@ -264,6 +264,7 @@ def _track(r: _Reader, default: TrackSpec) -> TrackSpec:
         t.optional("travel_max_mm", -1e6, 1e7),
         t.number("arc_radius_sigma_mm", default.arc_radius_sigma_mm, 0.0, 1e3),
         _chain(t.sub("chain", ("sprocket_teeth", "pitch_mm")), default.chain),
+        _provenance(t.sub("arcs", ("provenance",))) if t.has("arcs") else default.arcs,
     )
     _track_checks(spec, r.problems)
     return spec
@@ -489,6 +490,8 @@ def rig_to_dict(spec: RigSpec) -> dict[str, Any]:
     }
     track["arc_radius_sigma_mm"] = t.arc_radius_sigma_mm
     track["chain"] = {"sprocket_teeth": t.chain.sprocket_teeth, "pitch_mm": t.chain.pitch_mm}
+    if t.arcs != Provenance():
+        track["arcs"] = {"provenance": _prov_dict(t.arcs)}
     for key in ("closed", "travel_min_mm", "travel_max_mm"):
         if getattr(t, key) is not None:
             track[key] = getattr(t, key)

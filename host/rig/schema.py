@@ -264,9 +264,11 @@ class TrackSpec:
     travel_min_mm: float | None = None
     travel_max_mm: float | None = None
     # σ of the arcs' radii against the drawing, one error shared by all arcs (bent on one jig);
-    # no calibration measures it: it moves the track beyond the arcs away from the placement
+    # `survey track` measures it on a closed loop: it moves the track beyond the arcs
     arc_radius_sigma_mm: float = NOMINAL_SIGMA_ARC_RADIUS_MM
     chain: ChainSpec = field(default_factory=ChainSpec)
+    # where the arcs' radii (in `segments`) and their σ came from (the drawing, or a survey)
+    arcs: Provenance = field(default_factory=Provenance)
 
     @property
     def length_mm(self) -> float:

@@ -26,6 +26,9 @@ UPDATABLE = (
     "track.placement",
     "track.home",
     "track.marks",
+    "track.segments",  # the arcs' radii (survey track), with:
+    "track.arc_radius_sigma_mm",
+    "track.arcs",
     "hall",
     "head.m_cr",
     "head.angle_noise",

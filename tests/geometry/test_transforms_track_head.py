@@ -96,6 +96,18 @@ def test_runway_length_and_closure() -> None:
     assert track.position(-1.0)[0] == pytest.approx(track.position(track.length_mm - 1.0)[0])
 
 
+def test_arcs_bent_wider_keep_the_loop_closed_and_the_first_straight() -> None:
+    t = runway()
+    wider = t.with_arc_radius_change(3.0)
+    assert wider.closed
+    assert wider.length_mm == pytest.approx(t.length_mm + 4 * 3.0 * math.pi / 2)
+    s = np.linspace(0.0, 4000.0, 9)  # the first straight
+    assert np.allclose(wider.pose(s), t.pose(s))
+    end = 4000.0 + 1003.0 * math.pi / 2  # the first arc's end: 3 mm further out and along
+    assert np.allclose(wider.position(end) - t.position(4000.0 + 1000.0 * math.pi / 2),
+                       [3.0, 3.0, 0.0], atol=1e-9)  # fmt: skip
+
+
 def test_runway_positions_continuous_at_joints() -> None:
     track = runway()
     joints = np.cumsum([g.length_mm for g in track.segments])[:-1]
