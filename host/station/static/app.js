@@ -574,6 +574,12 @@ const RUN_FORMS = {
   calibrate_rangefinder: { title: "Rangefinder mount", fields: [
     STATIONS, ["pans", "int", "pans per station"], ["aims", "json", "or aims [[s_mm, pan_rad, tilt_rad], …]"],
     ["samples", "int", "readings per pose"], ["max_rms_mm", "number", "pass if RMS ≤, mm"], SPEED, WRITE] },
+  survey_track: { title: "Track: first corner and arc radius (rangefinder)", fields: [
+    ["stations_mm", "list", "stations s, mm (empty: before and on the first arc)"],
+    ["pans", "int", "pans per station"], ["samples", "int", "readings per pose"],
+    ["max_corner_sigma_mm", "number", "pass if corner σ ≤, mm"],
+    ["max_radius_sigma_mm", "number", "pass if radius σ ≤, mm"],
+    ["max_rms_mm", "number", "pass if RMS ≤, mm"], SPEED, WRITE] },
   survey_home: { title: "Home survey (rangefinder)", fields: [
     ["pan_rad", "deg", "pan at an end wall, °"], ["tilt_rad", "deg", "tilt, °"], ["samples", "int", "readings"], WRITE] },
 };
