@@ -10,7 +10,8 @@ lies above the recent minimum. The fit is an exponentially decaying weighted lin
 host time on extended controller time, so a constant drift costs nothing and old probes fade
 out. The fit is recomputed from the kept probes after each one, so a newly found lower minimum
 delay re-weights the past instead of leaving early, slow probes trusted. Probes that disagree
-with the prediction by far more than their delay can explain are rejected as outliers.
+with the prediction by far more than their delay can explain are rejected as outliers, except
+one that sets a new minimum delay: it is the best the link has shown.
 
 No estimator can see a difference between the two legs' *minimum* delays; it shifts the mapping
 by half that difference. When a link's asymmetry is known, `outbound_fraction` corrects it.
@@ -120,7 +121,9 @@ class ClockSync:
         if probe.delay - min_delay > self._excess_cutoff(min_delay):
             self.filtered += 1
             return False
-        if self._is_outlier(probe, min_delay):
+        # The fastest probe yet pins the clock best: it is never thrown away as an outlier
+        # (a biased fit would otherwise reject exactly the probe that corrects it).
+        if probe.delay > min_delay and self._is_outlier(probe, min_delay):
             probe.outlier = True
             return False
         self._fit = self._solve(min_delay)
