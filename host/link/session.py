@@ -553,6 +553,7 @@ class Session:
             # A quiet pair's first probe (PROTOCOL.md §8): it met the telemetry on the air and
             # only made the controller hold it; the second, sent now, crosses quiet air.
             self._first_probes.discard(msg.token)
+            self.stats.clock_pair_firsts += 1
             self._send_probe(first=False)
             return
         self.clock.add_probe(sent_ns, msg.mcu_time_us, t1_ns, msg.rx_time_us)
