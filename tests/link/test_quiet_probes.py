@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
 
 import pytest
 
@@ -15,14 +14,6 @@ from tests.link.sim_bridge import SimBridge
 
 QUIET = int(Capability.QUIET_CLOCK_PROBES)
 BATCHED = int(Capability.BATCHED_TELEMETRY)
-
-
-@pytest.fixture
-async def bridge() -> AsyncIterator[SimBridge]:
-    b = SimBridge()
-    b.start()
-    yield b
-    await b.stop()
 
 
 @pytest.mark.parametrize(
