@@ -601,10 +601,15 @@ class Session:
             rate = self.probe_rate
             rate.fast_s, rate.slow_s = cfg.clock_sync_interval_s, cfg.clock_sync_slow_interval_s
             interval_s = rate.interval_s(self.clock, time.monotonic_ns())
+            paired = bool(self.capabilities & QUIET_PROBES)
+            if paired and not rate.slow:
+                # A quiet pair costs two probes' air: converging, pairs go at half the rate.
+                interval_s = max(interval_s, 2 * cfg.clock_sync_interval_s)
+            slow = rate.slow
             wake = loop.time() + interval_s
             while (left := wake - loop.time()) > 0 and self._running:
                 await asyncio.sleep(min(left, cfg.clock_sync_interval_s))
-                if not rate.slow:
+                if slow and not rate.slow:
                     break  # a controller reset restarted the fit: probe at once
             # Right after a controller frame arrived, its side of the link has just sent what it
             # had: the reply then likely finds the way back (a radio module's buffer) empty.
@@ -623,7 +628,7 @@ class Session:
                 await asyncio.sleep(wait)
             if self.identity is None:
                 continue
-            self._send_probe(first=bool(self.capabilities & QUIET_PROBES))
+            self._send_probe(first=paired)
 
     def _send_probe(self, first: bool) -> None:
         """One CLOCK_SYNC; `first`: it opens a quiet pair, its reply sends the second."""
