@@ -137,6 +137,7 @@ class LinkEvent(enum.Enum):
     CONTROLLER_RESET = "controller_reset"  # a new boot id: the controller rebooted
     RESET_SUSPECTED = "reset_suspected"  # uptime or seq ran backwards: re-handshake to check
     HEARTBEAT_TIMEOUT = "heartbeat_timeout"
+    COMMAND_LOST = "command_lost"  # a command got no reply: its seq may be a hole
 
 
 @dataclass

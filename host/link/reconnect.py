@@ -180,6 +180,10 @@ class Supervisor:
             if self.state is LinkState.UP:
                 self.session.rto.forget_backoff()
             self.drop(f"controller reset suspected: {detail}", reopen=False)
+        elif event is LinkEvent.COMMAND_LOST:
+            # The controller may hold every later command behind the lost one's seq: HELLO
+            # starts a new sequence, and restore puts the streams and parameters back.
+            self.drop(f"command lost: {detail}", reopen=False)
 
     def _on_transport_lost(self, exc: Exception | None) -> None:
         """The transport reports the device gone."""

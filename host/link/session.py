@@ -317,9 +317,23 @@ class Session:
             entry.first_sent_s = loop.time()
             entry.rto_s = self.rto.rto_s
             self._transmit(entry, max_tries or self.config.max_tries)
-            return await entry.future
-        finally:
+        except BaseException:
             self._forget(entry)
+            raise
+        orphaned = False
+        try:
+            return await asyncio.shield(entry.future)
+        except asyncio.CancelledError:
+            if not entry.future.done():
+                # Sent, so it holds its place in the controller's sequence: were its frame lost,
+                # every later command would wait behind it. It goes on until its reply or its
+                # last try, unheard; only then is its slot free.
+                entry.future.add_done_callback(lambda _f: self._forget(entry))
+                orphaned = True
+            raise
+        finally:
+            if not orphaned:
+                self._forget(entry)
 
     def send(self, message: object) -> int:
         """Send an unacknowledged frame (HEARTBEAT, CLOCK_SYNC); returns its seq.
@@ -371,6 +385,11 @@ class Session:
             self.stats.timeouts += 1
             msg = f"{entry.name} seq {entry.seq}: no reply after {entry.tries} tries"
             entry.future.set_exception(CommandTimeout(msg))
+            if not isinstance(entry.message, Hello):
+                # If none of its frames arrived, the controller holds every later command
+                # behind its seq forever, though the link is up: only a HELLO restarts the
+                # sequence (PROTOCOL.md §6). The handshake's own failures are the supervisor's.
+                self._emit(LinkEvent.COMMAND_LOST, msg)
             return
         if entry.rto_s >= self.rto.rto_s:
             # One back-off per loss episode, as RFC 6298's single timer: the commands in flight

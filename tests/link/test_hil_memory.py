@@ -7,7 +7,7 @@ from collections.abc import AsyncIterator
 
 import pytest
 
-from host.link.common import ControllerRejected, LinkEvent, LinkState
+from host.link.common import CommandTimeout, ControllerRejected, LinkEvent, LinkState
 from host.link.controller import Controller
 from host.link.reconnect import BackoffConfig
 from host.link.session import SessionConfig
@@ -110,3 +110,39 @@ async def test_controller_reboot_detected_and_streams_restored(hil) -> None:  # 
     n = len(ctrl.encoder_ring)
     await asyncio.sleep(0.3)
     assert len(ctrl.encoder_ring) > n  # the stream was switched on again
+
+
+async def test_a_cancelled_command_whose_frame_was_lost_does_not_block_the_next(hil) -> None:  # type: ignore[no-untyped-def]
+    # The controller holds every command behind a missing seq: a request given up by its
+    # caller must still reach it, or no later command would ever run.
+    bridge, ctrl, _ = hil
+    await ctrl.connect()
+    bridge.transport.tx.impairment = Impairment(loss=1.0)
+    task = asyncio.create_task(ctrl.set_param(8, 150_000))  # HOME_SPEED_UM_S
+    await asyncio.sleep(0.02)
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    bridge.transport.tx.impairment = Impairment()
+    assert await asyncio.wait_for(ctrl.set_param(8, 200_000), 2.0) == 200_000
+    assert await asyncio.wait_for(ctrl.get_param(8), 2.0) == 200_000  # both ran, in order
+    assert ctrl.link_state is LinkState.UP
+
+
+async def test_a_command_that_timed_out_costs_a_handshake_not_the_link(hil) -> None:  # type: ignore[no-untyped-def]
+    # A command abandoned after its last try leaves a hole the controller's sequence cannot
+    # pass (the link itself is up: telemetry and heartbeats flow): the host re-handshakes.
+    bridge, ctrl, events = hil
+    ctrl.session.config.max_tries = 3
+    await ctrl.connect()
+    handshakes = ctrl.session.stats.handshakes
+    bridge.transport.tx.impairment = Impairment(loss=1.0)
+    with pytest.raises(CommandTimeout):
+        await ctrl.set_param(8, 150_000)
+    bridge.transport.tx.impairment = Impairment()
+    for _ in range(100):
+        if ctrl.link_state is LinkState.UP and ctrl.session.stats.handshakes > handshakes:
+            break
+        await asyncio.sleep(0.02)
+    assert await asyncio.wait_for(ctrl.set_param(8, 200_000), 2.0) == 200_000
+    assert LinkEvent.COMMAND_LOST in events
