@@ -239,6 +239,7 @@ def _clock_sync(fw: Firmware, seq: int, msg: object) -> Reply:
     The host subtracts the difference (the probe's wait for this tick) from the round trip.
     """
     assert isinstance(msg, m.ClockSync)
+    fw.clock_probe_arrived(fw.frame_rx_us)
     return m.ClockSyncReply(
         seq, msg.token, fw.hal.micros() & 0xFFFF_FFFF, fw.frame_rx_us & 0xFFFF_FFFF
     )

@@ -27,7 +27,7 @@ CHAIN_PITCH_UM = 12_700  # ISO 08B: 254 000 µm of chain per sprocket turn
 
 MAX_FRAME_BYTES = MAX_WIRE_FRAME  # the protocol's limit: one XBee unicast payload
 RX_WINDOW = 8
-CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in IDENTIFY
+CAPABILITIES = int(Capability.BATCHED_TELEMETRY | Capability.QUIET_CLOCK_PROBES)  # in IDENTIFY
 REPLY_CACHE_SIZE = 16  # at least RX_WINDOW: duplicates within the window are answered from here
 RX_BUFFER_BYTES = 256  # the UART DMA ring
 TX_QUEUE_FRAMES = 32

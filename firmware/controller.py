@@ -34,6 +34,7 @@ from protocol.messages import (
     RefMark,
     Status,
 )
+from protocol.schema import QUIET_HOLD_US
 
 _SWITCH_INPUTS = int(Inputs.HOME | Inputs.LIMIT_MIN | Inputs.LIMIT_MAX | Inputs.ESTOP_IN)
 # Plain ints for the tick's bit tests: IntFlag operators build enum objects on every call.
@@ -50,6 +51,7 @@ _N_STREAMS = len(Stream)
 _MOTION_STATES = (State.MOVING, State.HOMING)
 _WATCHDOG_STATES = (State.IDLE, State.HOMING, State.READY, State.MOVING)
 _BATCHED = int(Capability.BATCHED_TELEMETRY)
+_QUIET = int(Capability.QUIET_CLOCK_PROBES)
 _BATCH_AGE_PARAMS = {
     int(Stream.ENCODER): ParamId.ENCODER_BATCH_AGE_MS,
     int(Stream.RANGE): ParamId.RANGE_BATCH_AGE_MS,
@@ -110,6 +112,8 @@ class Firmware:
         self.mech = mechanics  # the drive this build is for (the C's build-time constants)
         self.capabilities = capabilities  # offered in IDENTIFY (0: a controller without batching)
         self.batching = False  # both sides offered BATCHED_TELEMETRY in this session
+        self.quiet_probes = False  # both sides offered QUIET_CLOCK_PROBES in this session
+        self.quiet_until_us: int | None = None  # telemetry held until this µs time (a probe's)
         self.batchers = {s: Batcher() for s in _BATCHED_STREAMS}
         self.counters = LinkCounters()
         self.params = ParamStore()
@@ -151,7 +155,7 @@ class Firmware:
             self.tx.send(self._status(), reply=True)
         if self.ticks - self._last_tx_tick >= HEARTBEAT_IDLE_TICKS:
             self.tx.send(Heartbeat(self.ticks & 0xFFFF_FFFF))
-        out = self.tx.drain(self.hal.link_tx_room())
+        out = self.tx.drain(self.hal.link_tx_room(), telemetry=not self._quiet())
         if out:
             self.hal.link_write(out)
             self._last_tx_tick = self.ticks
@@ -258,6 +262,8 @@ class Firmware:
         """A HELLO opened a session: samples still waiting go out, then batch only if agreed."""
         self._flush_batches()
         self.batching = bool(host_capabilities & self.capabilities & _BATCHED)
+        self.quiet_probes = bool(host_capabilities & self.capabilities & _QUIET)
+        self.quiet_until_us = None
 
     def set_stream(self, stream: int, rate_hz: int) -> None:
         """Switch a telemetry stream on at a rate, or off with 0."""
@@ -306,6 +312,8 @@ class Firmware:
         self.stream_acc = [0] * _N_STREAMS
         self.active_streams = []
         self.batching = False
+        self.quiet_probes = False
+        self.quiet_until_us = None
         for batcher in self.batchers.values():
             batcher.clear()
         self.hal.encoder_index_latch()  # discard a pulse from before the reset
@@ -475,6 +483,34 @@ class Firmware:
             self._batch(stream, msg)
         else:
             self.tx.send(msg)
+
+    # ---- quiet clock probes (PROTOCOL.md §8, R-QUIET-1) ------------------------------
+
+    def clock_probe_arrived(self, rx_us: int) -> None:
+        """A CLOCK_SYNC in a quiet-probe session: start a hold, or end the one running.
+
+        The first probe of a pair holds telemetry for at most QUIET_HOLD_US from its arrival,
+        so its reply leaves and the air is quiet when the host's second probe crosses it and
+        when that probe's reply comes back. The second probe ends the hold: telemetry flows
+        again on the tick after its reply was written. A lost probe costs at most the bound.
+        """
+        if not self.quiet_probes:
+            return
+        if self._quiet():
+            self.quiet_until_us = (self.now_us + 1) & 0xFFFF_FFFF  # this tick still holds
+        else:
+            self.quiet_until_us = (rx_us + QUIET_HOLD_US) & 0xFFFF_FFFF
+
+    def _quiet(self) -> bool:
+        """True while a quiet probe holds telemetry (wrap-safe; ends by itself at the bound)."""
+        until = self.quiet_until_us
+        if until is None:
+            return False
+        left = (until - self.now_us) & 0xFFFF_FFFF
+        if 0 < left <= QUIET_HOLD_US:
+            return True
+        self.quiet_until_us = None
+        return False
 
     # ---- batched telemetry (firmware.batching) ---------------------------------------------
 

@@ -167,13 +167,17 @@ class TxQueue:
         (self._replies if reply else self._telemetry).append((msg, flags, legacy))
         return True
 
-    def drain(self, room: int) -> bytes:
-        """The queued frames that fit in `room` bytes, replies first, as one byte string."""
+    def drain(self, room: int, telemetry: bool = True) -> bytes:
+        """The queued frames that fit in `room` bytes, replies first, as one byte string.
+
+        `telemetry` False writes replies only (a quiet clock probe's hold, PROTOCOL.md §8);
+        a frame already framed for the wire still goes first.
+        """
         out: list[bytes] = []
         used = 0
         while True:
             if self._pending is None:
-                queue = self._replies or self._telemetry
+                queue = self._replies or (self._telemetry if telemetry else None)
                 if not queue:
                     break
                 self._pending = self._frame(*queue.popleft())

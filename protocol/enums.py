@@ -51,6 +51,7 @@ class Capability(enum.IntFlag):
 
     NONE = 0  # no optional feature; bits are assigned by later revisions (unknown bits ignored)
     BATCHED_TELEMETRY = 0x01  # ENCODER_BATCH, RANGE_BATCH, HEAD_BATCH in place of single samples
+    QUIET_CLOCK_PROBES = 0x02  # a CLOCK_SYNC holds telemetry until the next one, at most 40 ms
 
 
 class Stream(enum.IntEnum):

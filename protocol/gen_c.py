@@ -19,6 +19,7 @@ from protocol.schema import (
     MAX_RAW_FRAME,
     MAX_WIRE_FRAME,
     PROTOCOL_VERSION,
+    QUIET_HOLD_US,
     SCHEMA,
     TEXT,
     FieldSpec,
@@ -79,6 +80,7 @@ def generate_header(schema_hash: int) -> str:
             crc_init=CRC_INIT,
             crc_xorout=FRAME_XOROUT,
             crc_residue=FRAME_RESIDUE,
+            quiet_hold=QUIET_HOLD_US,
         ),
         _flags(),
         _enum_block(),
@@ -405,6 +407,10 @@ _PROLOGUE = """\
  * over a good frame, CRC included, ends at ORB_CRC_RESIDUE (appended zeros change it). */
 #define ORB_CRC_XOROUT 0x{crc_xorout:04X}u
 #define ORB_CRC_RESIDUE 0x{crc_residue:04X}u
+/* QUIET_CLOCK_PROBES (section 8): a CLOCK_SYNC that finds no hold starts one; the controller
+ * then writes replies only, no telemetry, until the next CLOCK_SYNC's reply has been written
+ * (released on the tick after it) or ORB_QUIET_HOLD_US after the first probe arrived. */
+#define ORB_QUIET_HOLD_US {quiet_hold}u
 """
 
 _CODEC_HELPERS = """\

@@ -26,6 +26,9 @@ MAX_WIRE_FRAME = 84
 # COBS adds one code byte per 254 data bytes; below 254 bytes it is exactly one.
 MAX_RAW_FRAME = MAX_WIRE_FRAME - 2
 MAX_PAYLOAD = MAX_RAW_FRAME - HEADER_SIZE - CRC_SIZE
+# Capability.QUIET_CLOCK_PROBES: the longest a CLOCK_SYNC holds the controller's telemetry
+# (PROTOCOL.md §8, R-QUIET-1): long enough for its reply and the host's second probe.
+QUIET_HOLD_US = 40_000
 
 
 class Direction(enum.Enum):

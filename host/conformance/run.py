@@ -14,6 +14,7 @@ from typing import Any
 
 from host.conformance import (  # noqa: F401  (register the checks)
     checks_batches,
+    checks_clock,
     checks_link,
     checks_state,
 )

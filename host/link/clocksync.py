@@ -10,7 +10,8 @@ lies above the recent minimum. The fit is an exponentially decaying weighted lin
 host time on extended controller time, so a constant drift costs nothing and old probes fade
 out. The fit is recomputed from the kept probes after each one, so a newly found lower minimum
 delay re-weights the past instead of leaving early, slow probes trusted. Probes that disagree
-with the prediction by far more than their delay can explain are rejected as outliers.
+with the prediction by far more than their delay can explain are rejected as outliers, except
+one that sets a new minimum delay: it is the best the link has shown.
 
 No estimator can see a difference between the two legs' *minimum* delays; it shifts the mapping
 by half that difference. When a link's asymmetry is known, `outbound_fraction` corrects it.
@@ -115,12 +116,21 @@ class ClockSync:
             self.inconsistent += 1
             return False
         probe = _Probe(self.extend(mcu_ticks_32), t0_ns, rtt - residence, residence)
+        # What the fit's probes can be off by: half the slowest delay it keeps.
+        explained = 0.0
+        if self._history:
+            kept_min = min(p.delay for p in self._history)
+            explained = (kept_min + self._excess_cutoff(kept_min)) / 2
         self._history.append(probe)
         min_delay = min(p.delay for p in self._history)
         if probe.delay - min_delay > self._excess_cutoff(min_delay):
             self.filtered += 1
             return False
-        if self._is_outlier(probe, min_delay):
+        # The fastest probe yet pins the clock best: it is not thrown away as an outlier for a
+        # disagreement the fit's own slower probes explain (a fit biased by them would reject
+        # exactly the probe that corrects it); a wrong stamp or a clock step is still caught.
+        slack = explained + probe.delay / 2 if probe.delay <= min_delay else 0.0
+        if self._is_outlier(probe, min_delay, slack):
             probe.outlier = True
             return False
         self._fit = self._solve(min_delay)
@@ -183,14 +193,14 @@ class ClockSync:
         quantile = recent[int(len(recent) * KEEP_FASTEST_FRACTION)]
         return max(quantile - min_delay, MIN_EXCESS_CUTOFF_NS)
 
-    def _is_outlier(self, probe: _Probe, min_delay: float) -> bool:
-        """A probe far off the prediction, beyond what its own delay can explain."""
+    def _is_outlier(self, probe: _Probe, min_delay: float, slack: float = 0.0) -> bool:
+        """A probe far off the prediction, beyond what its own delay (or `slack`) explains."""
         fit = self._fit
         if fit is None or fit.sxx <= 0.0:
             return False
         y, sigma2 = self._host_time(probe, min_delay)
         residual = y - self.ext_to_host_ns(probe.x)
-        limit = max(OUTLIER_SIGMAS * math.sqrt(sigma2 * fit.unit_var), OUTLIER_FLOOR_NS)
+        limit = max(OUTLIER_SIGMAS * math.sqrt(sigma2 * fit.unit_var), OUTLIER_FLOOR_NS, slack)
         if abs(residual) <= limit:
             self._consecutive_outliers = 0
             return False

@@ -172,6 +172,7 @@ class LinkStats:
     rx_out_of_order: int = 0  # controller frames with a seq older than the newest
     clock_probes: int = 0
     clock_replies: int = 0
+    clock_pair_firsts: int = 0  # replies that opened a quiet probe pair (not fitted)
     heartbeats_out: int = 0
     heartbeats_in: int = 0
     handshakes: int = 0

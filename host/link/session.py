@@ -55,7 +55,8 @@ U32_MOD = 1 << 32
 # A frame with a tiny seq far from the expected one: the controller's counter restarted.
 SEQ_RESTART_BELOW = 16
 SEQ_RESTART_MIN_JUMP = 256
-HOST_CAPABILITIES = int(Capability.BATCHED_TELEMETRY)  # Capability bits offered in HELLO
+HOST_CAPABILITIES = int(Capability.BATCHED_TELEMETRY | Capability.QUIET_CLOCK_PROBES)  # HELLO
+QUIET_PROBES = int(Capability.QUIET_CLOCK_PROBES)
 PROBE_ALIGN_MAX_S = 0.1  # a probe waits at most this long for a controller frame to follow
 HEARTBEAT_MAX_S = 0.25  # 4 Hz costs an XBee 2.8 % of its air; 10 Hz cost 7 %
 HEARTBEAT_SLACK_S = 0.002  # a wake-up this close to the heartbeat's time counts as on time
@@ -216,6 +217,7 @@ class Session:
         self._cmd_index = 0
         self._slot_waiters: list[asyncio.Future[None]] = []
         self._probes: dict[int, int] = {}  # token → host send time, ns
+        self._first_probes: set[int] = set()  # tokens of quiet pairs' first probes in flight
         self._frame_in = asyncio.Event()  # a controller frame arrived (probes follow one)
         self._tokens = itertools.count(1)
         self._tasks: list[asyncio.Task[None]] = []
@@ -251,6 +253,7 @@ class Session:
             task.cancel()
         self._fail_pending(LinkDown(reason))
         self._probes.clear()
+        self._first_probes.clear()
 
     async def stop(self, reason: str = "session closed") -> None:
         """Halt and wait for the background tasks to finish."""
@@ -565,6 +568,13 @@ class Session:
         self.stats.clock_replies += 1
         t1_ns = self.transport.rx_time_ns or time.monotonic_ns()  # its chunk's arrival (recorded)
         self.probe_rate.check_reply(self.clock, sent_ns, msg.mcu_time_us, t1_ns)
+        if msg.token in self._first_probes:
+            # A quiet pair's first probe (PROTOCOL.md §8): it met the telemetry on the air and
+            # only made the controller hold it; the second, sent now, crosses quiet air.
+            self._first_probes.discard(msg.token)
+            self.stats.clock_pair_firsts += 1
+            self._send_probe(first=False)
+            return
         self.clock.add_probe(sent_ns, msg.mcu_time_us, t1_ns, msg.rx_time_us)
 
     def _emit(self, event: LinkEvent, detail: str) -> None:
@@ -610,10 +620,15 @@ class Session:
             rate = self.probe_rate
             rate.fast_s, rate.slow_s = cfg.clock_sync_interval_s, cfg.clock_sync_slow_interval_s
             interval_s = rate.interval_s(self.clock, time.monotonic_ns())
+            paired = bool(self.capabilities & QUIET_PROBES)
+            if paired and not rate.slow:
+                # A quiet pair costs two probes' air: converging, pairs go at half the rate.
+                interval_s = max(interval_s, 2 * cfg.clock_sync_interval_s)
+            slow = rate.slow
             wake = loop.time() + interval_s
             while (left := wake - loop.time()) > 0 and self._running:
                 await asyncio.sleep(min(left, cfg.clock_sync_interval_s))
-                if not rate.slow:
+                if slow and not rate.slow:
                     break  # a controller reset restarted the fit: probe at once
             # Right after a controller frame arrived, its side of the link has just sent what it
             # had: the reply then likely finds the way back (a radio module's buffer) empty.
@@ -632,15 +647,23 @@ class Session:
                 await asyncio.sleep(wait)
             if self.identity is None:
                 continue
-            token = next(self._tokens) % U32_MOD
-            t0 = time.monotonic_ns()
-            seq = self._send_quietly(ClockSyncMsg(token=token))
-            if seq is not None:
-                t0 = self.transport.tx_time_ns or t0  # taken just before the write (recorded)
-                self.stats.clock_probes += 1
-                self._probes[token] = t0
-                while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
-                    del self._probes[next(iter(self._probes))]
+            self._send_probe(first=paired)
+
+    def _send_probe(self, first: bool) -> None:
+        """One CLOCK_SYNC; `first`: it opens a quiet pair, its reply sends the second."""
+        token = next(self._tokens) % U32_MOD
+        t0 = time.monotonic_ns()
+        seq = self._send_quietly(ClockSyncMsg(token=token))
+        if seq is None:
+            return
+        t0 = self.transport.tx_time_ns or t0  # taken just before the write (recorded)
+        self.stats.clock_probes += 1
+        self._probes[token] = t0
+        if first:
+            self._first_probes.add(token)
+        while len(self._probes) > MAX_CLOCK_PROBES_IN_FLIGHT:
+            self._first_probes.discard(oldest := next(iter(self._probes)))
+            del self._probes[oldest]
 
     def _send_quietly(self, message: object) -> int | None:
         """Background send: a dead link is reported by the transport, not raised here."""

@@ -66,10 +66,13 @@ log = logging.getLogger(__name__)
 # (encoder) or 5 B (range) per further one. At the rates below, per second: encoder 100 Hz, age 40
 # ms, 5 a batch: 20 × (62 + 18) = 1600 B; range 50 Hz, age 60 ms, ~4 a batch: 612 B; head 10 Hz
 # alone (its 100 ms step exceeds a record's 65 ms): 10 × (21 + 18) = 390 B; STATUS 2 × (27 + 18) =
-# 90 B. The clock sync's probe pairs cost 2 × (23 + 18) = 82 B per Hz: 10 Hz until the fit
-# converges, then 1 Hz (host.link.probe_rate). The host's HEARTBEAT (13 + 18 B) fills its silences
-# every WATCHDOG_MS / 4 (not more often than `heartbeat_ms`, at least every 250 ms): 248 B/s at the
-# default 500 ms watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 124 B/s at a 2 s watchdog. Converged
+# 90 B. The clock sync's probe and reply cost 2 × (23 + 18) = 82 B per Hz: 10 Hz until the fit
+# converges, then 1 Hz (host.link.probe_rate); with quiet probes (both offer
+# QUIET_CLOCK_PROBES, PROTOCOL.md §8) they go in pairs, 5 pairs a second converging (the same
+# air) and one pair a second then (164 B/s, +1.9 % of the air). The host's HEARTBEAT (13 + 18 B)
+# fills its silences every WATCHDOG_MS / 4 (not more often than `heartbeat_ms`, at least every
+# 250 ms): 248 B/s at the default 500 ms watchdog, 155 B/s at a 200 ms `heartbeat_ms`, 124 B/s at
+# a 2 s watchdog. Converged
 # that is 2774 B/s + heartbeats = 63 % + 2.8–5.7 % of the air with ranging; converging, 17 % more
 # for the first ~20 s (81–86 %), which the modules' buffers ride out at some loss; 4 Hz fast probes
 # would fit the air, but were tried and left the demo's short run with fewer probes in its fit and a

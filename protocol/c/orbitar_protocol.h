@@ -24,7 +24,7 @@
 #include <string.h>
 
 #define ORB_PROTOCOL_VERSION 2u
-#define ORB_SCHEMA_HASH UINT32_C(0xF333A4DD)
+#define ORB_SCHEMA_HASH UINT32_C(0x800BA525)
 #define ORB_HEADER_SIZE 5u
 #define ORB_CRC_SIZE 2u
 #define ORB_MAX_WIRE_FRAME 84u /* encoded bytes plus the 0x00 delimiter */
@@ -35,6 +35,10 @@
  * over a good frame, CRC included, ends at ORB_CRC_RESIDUE (appended zeros change it). */
 #define ORB_CRC_XOROUT 0xFFFFu
 #define ORB_CRC_RESIDUE 0x1D0Fu
+/* QUIET_CLOCK_PROBES (section 8): a CLOCK_SYNC that finds no hold starts one; the controller
+ * then writes replies only, no telemetry, until the next CLOCK_SYNC's reply has been written
+ * (released on the tick after it) or ORB_QUIET_HOLD_US after the first probe arrived. */
+#define ORB_QUIET_HOLD_US 40000u
 
 /* ---- header flags ---- */
 #define ORB_FLAG_ACK_REQUESTED 0x01u
@@ -102,7 +106,8 @@ typedef enum {
 
 typedef enum {
     ORB_CAPABILITY_NONE = 0,
-    ORB_CAPABILITY_BATCHED_TELEMETRY = 1
+    ORB_CAPABILITY_BATCHED_TELEMETRY = 1,
+    ORB_CAPABILITY_QUIET_CLOCK_PROBES = 2
 } orb_capability_t;
 
 /* ---- parameters (protocol/params.py): id, default, min, max ---- */

@@ -9,7 +9,6 @@ host without the capability falls back to single samples.
 from __future__ import annotations
 
 import asyncio
-from collections.abc import AsyncIterator
 
 import pytest
 
@@ -136,14 +135,6 @@ async def test_a_damaged_or_cut_batch_loses_only_itself_and_is_counted() -> None
 
 
 # ---- negotiation, against the firmware mirror ------------------------------------------------
-
-
-@pytest.fixture
-async def bridge() -> AsyncIterator[SimBridge]:
-    b = SimBridge()
-    b.start()
-    yield b
-    await b.stop()
 
 
 @pytest.mark.parametrize(

@@ -218,3 +218,17 @@ def test_known_base_asymmetry_is_corrected_by_outbound_fraction() -> None:
         t += PROBE_PERIOD_NS
     assert worst_error_ns(naive, link, t, rng) > 800_000
     assert worst_error_ns(told, link, t, rng) < TARGET_ERROR_NS
+
+
+def test_the_fastest_probe_is_kept_though_slow_biased_probes_disagree() -> None:
+    # Slow probes whose way out is 3 ms longer than their way back (a busy half-duplex radio)
+    # bias the fit 1.5 ms; the first fast, symmetric probe disagrees by that much and must not
+    # be thrown away as an outlier: it is the one that shows the bias.
+    sync = ClockSync()
+    for k in range(20):
+        t0 = k * 100_000_000
+        assert sync.add_probe(t0, (t0 + 4_500_000) // 1000, t0 + 6_000_000) or k == 0
+    t0 = 20 * 100_000_000
+    assert sync.add_probe(t0, (t0 + 1_000_000) // 1000, t0 + 2_000_000)
+    assert sync.estimate().outliers == 0
+    assert abs(sync.mcu_to_host_ns((t0 + 1_000_000) // 1000) - (t0 + 1_000_000)) < 100_000
