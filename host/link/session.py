@@ -647,7 +647,8 @@ class Session:
                 await asyncio.sleep(wait)
             if self.identity is None:
                 continue
-            self._send_probe(first=paired)
+            # paired as negotiated now: the first wait may have begun before the handshake
+            self._send_probe(first=bool(self.capabilities & QUIET_PROBES))
 
     def _send_probe(self, first: bool) -> None:
         """One CLOCK_SYNC; `first`: it opens a quiet pair, its reply sends the second."""

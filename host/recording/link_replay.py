@@ -22,17 +22,20 @@ from host.link.clocksync import ClockSync
 from host.link.samples import EncoderReading, SampleMessage, SampleSink, reading
 from host.link.snapshot import Identity
 from protocol import FrameDecoder, Packet
+from protocol.enums import Capability
 from protocol.messages import ClockSync as ClockSyncMsg
 from protocol.messages import (
     ClockSyncReply,
     EncoderSample,
     HeadSample,
+    Hello,
     Identify,
     RangeSample,
     RefMark,
 )
 
 MAX_PROBES_IN_FLIGHT = 16  # as the session: older unanswered probes are forgotten
+QUIET_PROBES = int(Capability.QUIET_CLOCK_PROBES)
 DEFAULT_MCU_CLOCK_HZ = 1_000_000
 
 
@@ -63,6 +66,13 @@ class LinkReplay:
         self._rx = FrameDecoder()
         self._tx = FrameDecoder()
         self._probes: dict[int, tuple[int, int]] = {}
+        # quiet pairs (PROTOCOL.md §8), as the session sends them: with both sides offering them,
+        # a probe opens a pair unless it is the one a first probe's reply sent; only the second
+        # of a pair enters the fit
+        self._host_caps = 0
+        self._controller_caps = 0
+        self._first: set[int] = set()  # seqs of pairs' first probes in flight
+        self._second_due = False
 
     @property
     def synced(self) -> bool:
@@ -97,11 +107,23 @@ class LinkReplay:
     def _on_tx(self, packet: Packet, t_ns: int) -> None:
         """Note each clock probe's seq, token and send time."""
         msg = packet.message
-        if isinstance(msg, ClockSyncMsg):
+        if isinstance(msg, Hello):
+            self._host_caps = msg.capabilities
+        elif isinstance(msg, ClockSyncMsg):
             self.stats.probes += 1
             self._probes[packet.seq] = (t_ns, msg.token)
+            if self._paired and not self._second_due:
+                self._first.add(packet.seq)
+            self._second_due = False
             while len(self._probes) > MAX_PROBES_IN_FLIGHT:
-                del self._probes[next(iter(self._probes))]
+                oldest = next(iter(self._probes))
+                self._first.discard(oldest)
+                del self._probes[oldest]
+
+    @property
+    def _paired(self) -> bool:
+        """Both sides offered quiet probes in the handshake."""
+        return bool(self._host_caps & self._controller_caps & QUIET_PROBES)
 
     def _on_rx(self, packet: Packet, t_ns: int) -> None:
         """Identity, clock replies and samples, as the session and the controller take them."""
@@ -112,6 +134,9 @@ class LinkReplay:
             probe = self._probes.pop(msg.req_seq, None)
             if probe is None or probe[1] != msg.token:
                 self.stats.unmatched_replies += 1
+            elif msg.req_seq in self._first:  # it held the telemetry; the second goes now
+                self._first.discard(msg.req_seq)
+                self._second_due = True
             elif self.clock.add_probe(probe[0], msg.mcu_time_us, t_ns, msg.rx_time_us):
                 self.stats.probes_used += 1
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
@@ -123,6 +148,9 @@ class LinkReplay:
     def _on_identify(self, msg: Identify) -> None:
         """A handshake: a new boot id (or the first one) restarts the clock fit."""
         self.stats.handshakes += 1
+        self._controller_caps = msg.capabilities
+        self._first.clear()  # a new session: its pairs start afresh, as the session's do
+        self._second_due = False
         rebooted = self.identity is not None and self.identity.boot_id != msg.boot_id
         if rebooted or self.identity is None:
             self.clock = ClockSync(msg.mcu_clock_hz or DEFAULT_MCU_CLOCK_HZ)
