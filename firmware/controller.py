@@ -23,6 +23,7 @@ from firmware.config import (
 from firmware.hal import Hal
 from firmware.link import HoldBuffer, LinkCounters, ReplyCache, RxFramer, TxQueue
 from firmware.motion import Profile
+from firmware.quiet import QuietHold
 from firmware.storage import LoadResult, ParamStore
 from protocol import Fault, Inputs, ParamId, State, Stream
 from protocol.enums import Capability
@@ -34,7 +35,6 @@ from protocol.messages import (
     RefMark,
     Status,
 )
-from protocol.schema import QUIET_HOLD_US
 
 _SWITCH_INPUTS = int(Inputs.HOME | Inputs.LIMIT_MIN | Inputs.LIMIT_MAX | Inputs.ESTOP_IN)
 # Plain ints for the tick's bit tests: IntFlag operators build enum objects on every call.
@@ -113,7 +113,7 @@ class Firmware:
         self.capabilities = capabilities  # offered in IDENTIFY (0: a controller without batching)
         self.batching = False  # both sides offered BATCHED_TELEMETRY in this session
         self.quiet_probes = False  # both sides offered QUIET_CLOCK_PROBES in this session
-        self.quiet_until_us: int | None = None  # telemetry held until this µs time (a probe's)
+        self.quiet = QuietHold()  # telemetry held for a probe pair
         self.batchers = {s: Batcher() for s in _BATCHED_STREAMS}
         self.counters = LinkCounters()
         self.params = ParamStore()
@@ -133,8 +133,10 @@ class Firmware:
         if self._reboot_pending:
             self.hal.system_reset()
             self._boot()
-        self.now_us = self.hal.micros()
+        self.now_us = self.tx.now_us = self.hal.micros()
         self.ticks += 1
+        if held_us := self.quiet.tick(self.now_us):
+            self.tx.delay_telemetry(held_us)  # what it held keeps its spacing (firmware.link)
         self._read_sensors()
         data, at_us = self.hal.link_read()
         if data:
@@ -155,7 +157,7 @@ class Firmware:
             self.tx.send(self._status(), reply=True)
         if self.ticks - self._last_tx_tick >= HEARTBEAT_IDLE_TICKS:
             self.tx.send(Heartbeat(self.ticks & 0xFFFF_FFFF))
-        out = self.tx.drain(self.hal.link_tx_room(), telemetry=not self._quiet())
+        out = self.tx.drain(self.hal.link_tx_room(), telemetry=not self.quiet.active)
         if out:
             self.hal.link_write(out)
             self._last_tx_tick = self.ticks
@@ -263,7 +265,7 @@ class Firmware:
         self._flush_batches()
         self.batching = bool(host_capabilities & self.capabilities & _BATCHED)
         self.quiet_probes = bool(host_capabilities & self.capabilities & _QUIET)
-        self.quiet_until_us = None
+        self.quiet.clear()
 
     def set_stream(self, stream: int, rate_hz: int) -> None:
         """Switch a telemetry stream on at a rate, or off with 0."""
@@ -313,7 +315,7 @@ class Firmware:
         self.active_streams = []
         self.batching = False
         self.quiet_probes = False
-        self.quiet_until_us = None
+        self.quiet.clear()
         for batcher in self.batchers.values():
             batcher.clear()
         self.hal.encoder_index_latch()  # discard a pulse from before the reset
@@ -487,30 +489,9 @@ class Firmware:
     # ---- quiet clock probes (PROTOCOL.md §8, R-QUIET-1) ------------------------------
 
     def clock_probe_arrived(self, rx_us: int) -> None:
-        """A CLOCK_SYNC in a quiet-probe session: start a hold, or end the one running.
-
-        The first probe of a pair holds telemetry for at most QUIET_HOLD_US from its arrival,
-        so its reply leaves and the air is quiet when the host's second probe crosses it and
-        when that probe's reply comes back. The second probe ends the hold: telemetry flows
-        again on the tick after its reply was written. A lost probe costs at most the bound.
-        """
-        if not self.quiet_probes:
-            return
-        if self._quiet():
-            self.quiet_until_us = (self.now_us + 1) & 0xFFFF_FFFF  # this tick still holds
-        else:
-            self.quiet_until_us = (rx_us + QUIET_HOLD_US) & 0xFFFF_FFFF
-
-    def _quiet(self) -> bool:
-        """True while a quiet probe holds telemetry (wrap-safe; ends by itself at the bound)."""
-        until = self.quiet_until_us
-        if until is None:
-            return False
-        left = (until - self.now_us) & 0xFFFF_FFFF
-        if 0 < left <= QUIET_HOLD_US:
-            return True
-        self.quiet_until_us = None
-        return False
+        """A CLOCK_SYNC: in a quiet-probe session it starts or ends a hold (firmware.quiet)."""
+        if self.quiet_probes:
+            self.quiet.probe(rx_us)
 
     # ---- batched telemetry (firmware.batching) ---------------------------------------------
 

@@ -24,9 +24,11 @@ from protocol.cobs import CobsError
 from protocol.cobs import decode as cobs_decode
 from protocol.compat import HANDSHAKE_IDS, LEGACY_VERSION, encode_v1, legacy_frame_ok
 from protocol.crc import FRAME_RESIDUE, crc16
-from protocol.schema import CRC_SIZE, HEADER_FORMAT, HEADER_SIZE
+from protocol.schema import CRC_SIZE, HEADER_FORMAT, HEADER_SIZE, QUIET_HOLD_US
 
 _HEADER = struct.Struct(HEADER_FORMAT)
+_U32 = 0xFFFF_FFFF
+CATCH_UP = 4  # a held frame's delay shrinks 1 µs every CATCH_UP µs (TxQueue)
 _DELIM = b"\x00"
 _MIN_RAW = HEADER_SIZE + CRC_SIZE
 _HELLO_ID = min(HANDSHAKE_IDS)  # 0x01; IDENTIFY (0x80) never comes from the host
@@ -134,16 +136,36 @@ class TxQueue:
     the seqs in order. When the link carries less than the streams produce, frames wait here;
     once the queue is full the oldest waiting telemetry is dropped and its seq spent (the host
     counts the loss), never a reply: replies always find a slot.
+
+    Telemetry held back (a quiet clock probe's hold, PROTOCOL.md §8) leaves with the spacing it
+    was queued with, shifted by the hold, instead of in one burst: a radio module's serial
+    buffer (202 bytes on an XBee) takes a hold's worth of frames only as fast as the air does.
+    Each telemetry frame is stamped with `now_us` (the tick's time, set by the firmware) when
+    queued and leaves no sooner than the delay after it; the delay shrinks by one µs every
+    CATCH_UP µs (frames then leave 1 / (1 − 1 / CATCH_UP) times as fast as they were made, so
+    a 40 ms hold is made up within 160 ms) and is dropped once the telemetry queue is empty.
     """
 
-    __slots__ = ("_pending", "_replies", "_telemetry", "counters", "seq")
+    __slots__ = (
+        "_delay_at_us",
+        "_delay_us",
+        "_pending",
+        "_replies",
+        "_telemetry",
+        "counters",
+        "now_us",
+        "seq",
+    )
 
     def __init__(self, counters: LinkCounters) -> None:
         self.counters = counters
         self._replies: deque[tuple[object, int, bool]] = deque()  # (message, flags, legacy)
-        self._telemetry: deque[tuple[object, int, bool]] = deque()
+        self._telemetry: deque[tuple[object, int, bool, int]] = deque()  # ... queued at µs
         self._pending: bytes | None = None  # framed (its seq given) but not yet taken by the link
         self.seq = 0
+        self.now_us = 0
+        self._delay_us = 0  # the telemetry delay when last set, at _delay_at_us
+        self._delay_at_us = 0
 
     def __len__(self) -> int:
         return len(self._replies) + len(self._telemetry) + (self._pending is not None)
@@ -154,6 +176,24 @@ class TxQueue:
         self._telemetry.clear()
         self._pending = None
         self.seq = 0
+        self._delay_us = 0
+
+    def delay_telemetry(self, held_us: int) -> None:
+        """Telemetry was held for `held_us`: what waits leaves that much later than queued.
+
+        A hold while frames from an earlier one still wait adds to what is left of its delay,
+        up to two holds' bound, so a sample's age grows by at most that.
+        """
+        if self._telemetry:
+            self._delay_us = min(self.delay_us() + held_us, 2 * QUIET_HOLD_US)
+            self._delay_at_us = self.now_us
+
+    def delay_us(self) -> int:
+        """The telemetry delay now: 0 when frames leave as they are queued."""
+        if not self._delay_us:
+            return 0
+        caught_up = ((self.now_us - self._delay_at_us) & _U32) // CATCH_UP
+        return max(0, self._delay_us - caught_up)
 
     def send(self, msg: object, reply: bool = False, flags: int = 0, legacy: bool = False) -> bool:
         """Queue a message; False if it was telemetry dropped for room.
@@ -164,7 +204,10 @@ class TxQueue:
         if len(self) >= limit and not self._drop_oldest_telemetry() and not reply:
             self._spend_dropped()  # nothing older to drop: this one goes
             return False
-        (self._replies if reply else self._telemetry).append((msg, flags, legacy))
+        if reply:
+            self._replies.append((msg, flags, legacy))
+        else:
+            self._telemetry.append((msg, flags, legacy, self.now_us))
         return True
 
     def drain(self, room: int, telemetry: bool = True) -> bytes:
@@ -177,10 +220,13 @@ class TxQueue:
         used = 0
         while True:
             if self._pending is None:
-                queue = self._replies or (self._telemetry if telemetry else None)
-                if not queue:
+                if self._replies:
+                    self._pending = self._frame(*self._replies.popleft())
+                elif telemetry and self._telemetry_due():
+                    msg, flags, legacy, _ = self._telemetry.popleft()
+                    self._pending = self._frame(msg, flags, legacy)
+                else:
                     break
-                self._pending = self._frame(*queue.popleft())
             if used + len(self._pending) > room:
                 break  # it goes first next time: its seq is given
             out.append(self._pending)
@@ -188,6 +234,14 @@ class TxQueue:
             self._pending = None
         self.counters.frames_out += len(out)
         return b"".join(out)
+
+    def _telemetry_due(self) -> bool:
+        """Whether the oldest telemetry frame may leave now (its delay since queued is over)."""
+        if not self._telemetry:
+            self._delay_us = 0  # caught up: frames leave as they are queued again
+            return False
+        delay = self.delay_us()
+        return not delay or (self.now_us - self._telemetry[0][3]) & _U32 >= delay
 
     def _frame(self, msg: object, flags: int, legacy: bool) -> bytes:
         """The wire bytes of a message, with the next seq of this direction."""

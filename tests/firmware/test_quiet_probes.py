@@ -6,6 +6,7 @@ import itertools
 
 import pytest
 
+from firmware.link import CATCH_UP
 from hil_sim.client import FrameClient
 from protocol import PROTOCOL_VERSION, SCHEMA_HASH, Stream
 from protocol.enums import Capability
@@ -73,12 +74,43 @@ def test_a_lone_probe_holds_telemetry_no_longer_than_the_bound() -> None:
     samples = _sample_ticks(events)
     resumed = min(t for t in samples if t > reply)
     assert HOLD_TICKS - 2 <= resumed - 10 <= HOLD_TICKS + 2
-    # After it the stream flows at its rate again: the hold does not come back by itself.
-    assert len([t for t in samples if t > resumed]) >= (30 + HOLD_TICKS - resumed) // 2 - 1
+    # After it the stream flows again, a little faster than it is made until it has caught up
+    # (firmware.link.TxQueue); then as made: the hold does not come back by itself.
+    events = _timeline(rig, CATCH_UP * HOLD_TICKS, {})
+    assert rig.sim.firmware.tx.delay_us() == 0
+    assert {b - a for a, b in itertools.pairwise(_sample_ticks(events)[-10:])} == {2}
     # The next probe, later, starts a new hold of its own, again bounded.
     events = _timeline(rig, 2 * HOLD_TICKS, {0: 2})
     samples = _sample_ticks(events)
     assert min(t for t in samples if t > _reply_tick(events, 2)) <= HOLD_TICKS + 2
+
+
+def test_what_a_hold_kept_leaves_with_its_spacing_not_in_a_burst() -> None:
+    # A burst of a hold's frames overflowed the XBee module's 202-byte buffer.
+    rig = _session(QUIET)
+    events = _timeline(rig, 20 + CATCH_UP * HOLD_TICKS, {10: 1, 25: 2})
+    second = _reply_tick(events, 2)
+    after = [t for t in _sample_ticks(events) if t > second]
+    assert len(after) == len(set(after)), "several held samples left in one tick"
+    gaps = [b - a for a, b in itertools.pairwise(after)]
+    # Made at one every 2 ticks, they leave no faster than CATCH_UP / (CATCH_UP - 1) times that.
+    assert sum(gaps[:8]) >= 8 * 2 * (CATCH_UP - 1) // CATCH_UP
+    assert rig.sim.firmware.counters.tx_dropped == 0
+
+
+def test_a_second_probe_later_than_the_bound_holds_nothing() -> None:
+    # Over a radio the first reply may wait behind the module's buffer: the second probe comes
+    # after the hold ran out. It is its pair's late second, not a new first.
+    late = HOLD_TICKS + 15
+    rig = _session(QUIET)
+    events = _timeline(rig, late + HOLD_TICKS + 10, {10: 1, 10 + late: 2})
+    reply = _reply_tick(events, 2)
+    samples = _sample_ticks(events)
+    assert [t for t in samples if reply < t <= reply + 4], "a late second held telemetry"
+    # The probe after it is a first again: it holds.
+    events = _timeline(rig, 2 * HOLD_TICKS, {0: 3})
+    reply = _reply_tick(events, 3)
+    assert not [t for t in _sample_ticks(events) if reply < t < reply + HOLD_TICKS - 5]
 
 
 @pytest.mark.parametrize(
