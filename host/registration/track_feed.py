@@ -84,6 +84,16 @@ class PoseFeed:
         self._raw.push(t_host_ns, [s_mm])
         self.encoder.push(t_host_ns, [self.s_mm], after_reset=reset)
 
+    def raw_at(self, t_host_ns: int) -> float | None:
+        """Track arc length at a time before the chain filter's corrections (home + controller
+        mm), from the samples kept for late references; None outside them.
+
+        What an offset in time is measured against: the corrected arc length moves by whole
+        pitches when the filter takes a tooth skip, the controller's count never does.
+        """
+        enc = self._raw.lookup(t_host_ns)
+        return None if enc.value is None else self.home_s_mm + float(enc.value[0])
+
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
         """One head sample."""
         self.head.push(t_host_ns, [pan_rad, tilt_rad])

@@ -459,12 +459,21 @@ class Daemon:
         self.recorder = writer
 
     def _pose_at(self, t_ns: int) -> tuple[float, float, float] | None:
-        """(s, pan, tilt) the frame loop's pose source gives a frame stamped t_ns, if any."""
+        """(s, pan, tilt) for a frame stamped t_ns, with the frame loop's latency, if known.
+
+        The head angles are the frame loop's; s is the controller's count before the chain
+        filter's corrections (PoseFeed.raw_at): over XBee the filter took false tooth skips
+        during the latency passes, a jump of three pitches in one pass that the regression
+        read as -62 ms of latency. The uncorrected count's chain stretch is a function of
+        position, the same in both directions of travel, which the regression's offset takes.
+        """
         poses = getattr(self.frame_loop, "poses", None)  # CameraPoseLoop: (PoseSource, feed)
-        if not isinstance(poses, tuple) or not poses:
+        if not isinstance(poses, tuple) or len(poses) != 2:
             return None
-        pose = poses[0].pose_at(t_ns)
-        return (pose.s_mm, pose.pan_rad, pose.tilt_rad) if pose.ok else None
+        source, feed = poses
+        pose = source.pose_at(t_ns)
+        s_mm = feed.raw_at(pose.t_exposure_ns) if pose.ok else None
+        return None if s_mm is None else (s_mm, pose.pan_rad, pose.tilt_rad)
 
     def _op_context(self) -> OpContext:
         """What the control ops may see."""

@@ -137,3 +137,25 @@ def test_a_reading_from_before_the_latch_is_no_reference_after_it() -> None:
     stats = feed.chain.stats
     assert (stats.updates, stats.rejected, stats.skips_detected) == (0, 0, 0)
     assert feed.s_mm == pytest.approx(true_s(10))
+
+
+def test_the_uncorrected_arc_length_does_not_follow_a_tooth_skip() -> None:
+    # The latency calibration times frames against the controller's count: a correction of
+    # the chain filter (a skip it found, true or false) must not move it.
+    mark_mm = HOME_S_MM + 500.0
+    feed = PoseFeed(SampleBuffer(1, 512), AngleBuffer(2, 512), HOME_S_MM, marks_mm=(mark_mm,))
+    pitch = 12.7
+    times = [T0_NS + k * SAMPLE_NS for k in range(300)]
+    for k, t in enumerate(times):  # 0.5 m/s from home; the mark read a pitch late (512.5 mm)
+        feed.on_encoder(t, 2.5 * k, 500.0, HOMED)
+        feed.on_head(t, 0.0, 0.0)
+        if k == 205:
+            feed.on_mark(t, 2.5 * k)
+    t = times[-1]
+    corrected = feed.encoder.lookup(t).value
+    assert corrected is not None
+    assert feed.chain is not None
+    assert feed.chain.stats.updates >= 1
+    assert abs(float(corrected[0]) - (HOME_S_MM + 2.5 * 299)) > pitch / 2  # the filter moved it
+    assert feed.raw_at(t) == pytest.approx(HOME_S_MM + 2.5 * 299)  # the count did not move
+    assert feed.raw_at(T0_NS - SAMPLE_NS * 100) is None  # before the samples kept
