@@ -462,10 +462,9 @@ class Daemon:
         """(s, pan, tilt) for a frame stamped t_ns, with the frame loop's latency, if known.
 
         The head angles are the frame loop's; s is the controller's count before the chain
-        filter's corrections (PoseFeed.raw_at): over XBee the filter took false tooth skips
-        during the latency passes, a jump of three pitches in one pass that the regression
-        read as -62 ms of latency. The uncorrected count's chain stretch is a function of
-        position, the same in both directions of travel, which the regression's offset takes.
+        filter's corrections (PoseFeed.raw_at), which never jumps by a pitch when the filter
+        takes a skip (a false one in one pass read as -62 ms of latency over XBee). Its chain
+        stretch depends on position only, so the latency regression's offset takes it.
         """
         poses = getattr(self.frame_loop, "poses", None)  # CameraPoseLoop: (PoseSource, feed)
         if not isinstance(poses, tuple) or len(poses) != 2:
