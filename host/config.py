@@ -25,6 +25,7 @@ from host.config_fields import (
     ConfigError,
     check_text,
     deepest_nesting,
+    parse_auto_ms,
     parse_destination,
     parse_mode,
     parse_regex,
@@ -85,10 +86,16 @@ class CameraConfig:
 
 @dataclass(frozen=True)
 class RegistrationConfig:
-    """How far back the pose buffer reaches."""
+    """How far back the pose buffer reaches, and how long a frame waits for its samples."""
 
     horizon_ms: float = spec(
         2000.0, lo=10.0, hi=600_000.0, doc="how much pose history the buffer keeps"
+    )
+    frame_wait_ms: float | str = spec(
+        "auto",
+        parse=parse_auto_ms,
+        doc='longest a frame waits for the samples of its exposure: "auto" (the link\'s, '
+        "serial 30, xbee 150, can 20) or ms; 0 registers each frame as it arrives",
     )
 
 

@@ -157,6 +157,16 @@ def parse_destination(value: Any) -> str:
     return value
 
 
+def parse_auto_ms(value: Any) -> float | str:
+    """ "auto" or milliseconds in [0, 1000]."""
+    if value == "auto":
+        return "auto"
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    if not number or not _finite(value) or not 0 <= value <= 1000:
+        raise ValueError('expected "auto" or milliseconds in [0, 1000]')
+    return float(value)
+
+
 def parse_vector3(value: Any) -> tuple[float, float, float]:
     """Three numbers."""
     if not isinstance(value, list) or len(value) != 3:

@@ -53,10 +53,8 @@ Progress = Callable[[str, float], None]
 
 # The daemon's telemetry rates (an ENCODER_SAMPLE is 26 bytes on the wire, so 115200 baud
 # cannot carry 500 Hz), with the rangefinder on: the hall's walls are surveyed.
-STREAM_RATES_HZ = {
-    link: stream_rates(kind, ranging=True)
-    for link, kind in (("pty", "serial"), ("xbee", "xbee"), ("can", "can"))
-}
+LINK_KINDS = {"pty": "serial", "xbee": "xbee", "can": "can"}  # the demo's links → the daemon's
+STREAM_RATES_HZ = {link: stream_rates(kind, ranging=True) for link, kind in LINK_KINDS.items()}
 # Drift loop: the head turns the rangefinder (and camera) to look ahead along the track,
 # level, so the beam meets the hall's end walls nearly head-on on the straights.
 LOOK_AHEAD_PAN_RAD = 0.0

@@ -25,6 +25,7 @@ from host.commissioning.frames import RangeTap
 from host.demo.commissioning_phase import feature_points, make_commissioner, place_board
 from host.demo.daemon_phase import running_daemon
 from host.demo.experiments import (
+    LINK_KINDS,
     LOOK_AHEAD_PAN_RAD,
     LOOK_AHEAD_TILT_RAD,
     Bench,
@@ -52,6 +53,7 @@ from host.link import Controller, LinkError
 from host.link.controller import MotionFailed
 from host.rig import RigError, RigSpec, build_scene, load_rig, save_rig
 from host.rig.schema import NOMINAL, SURVEY_SIGMA_MM
+from host.service.wiring import frame_wait_s
 
 BAR_WIDTH = 30
 RENDER_EVERY = 8  # experiment frames rendered as images (the report's snapshots); all registered
@@ -215,7 +217,13 @@ async def _experiments(
         fps=rigs.truth.camera.fps, delivery_s=clock.delivery_s, clock=clock,
         render_every=RENDER_EVERY,
     )  # fmt: skip
-    loop = FrameLoop(source, bench.process(), [bench.collector])
+    loop = FrameLoop(
+        source,
+        bench.process(),
+        [bench.collector],
+        ready=lambda frame: feed.corrected.covers(frame.exposure_ns - bench.latency_ns),
+        max_wait_s=frame_wait_s(LINK_KINDS[link]),
+    )
     frames = asyncio.create_task(loop.run())
     lag = LoopLag()
     lag_task = asyncio.create_task(lag.run())

@@ -1,10 +1,15 @@
-"""The frame loop: capture off the event loop, keep only the newest frame, register it.
+"""The frame loop: capture off the event loop, register the newest frame whose samples are in.
 
-A capture thread reads the source as fast as it delivers and puts each frame into a one-slot
-mailbox; a frame still waiting when the next arrives is dropped and counted, so a slow
-registration never builds a queue and latency stays bounded. The event loop takes the newest
-frame, runs the (CPU-bound) processing in a worker thread and hands the result to the outputs.
-The loop never waits on the link, and the link never waits on it.
+A capture thread reads the source as fast as it delivers and hands each frame to the event
+loop, which runs the (CPU-bound) processing in a worker thread and gives the result to the
+outputs. When it takes a frame, older ones still waiting are dropped and counted, so a slow
+registration never builds a queue and latency stays bounded.
+
+A frame may wait for its samples (`ready`), at most `max_wait_s`: over a slow link (the XBee's
+batches arrive 50–100 ms after their stamps) a frame registered on arrival is placed by
+extrapolating old samples, and a tooth skip shows in it until a reading after the skip has
+come in. Broadcast render engines delay the video to the tracking data for the same reason.
+The link never waits on the loop; the loop waits on it only that long.
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ log = logging.getLogger(__name__)
 
 ResultT = TypeVar("ResultT")
 LATENCY_WINDOW = 512  # frames kept for the latency percentiles
+PENDING_LIMIT = 32  # frames held for their samples; past it the oldest is dropped
+WAIT_POLL_S = 0.002  # how often a held frame's samples are looked for (they come in on the link)
 
 
 @dataclass
@@ -36,6 +43,7 @@ class FrameLoopStats:
     processed: int = 0
     dropped: int = 0
     failed: int = 0
+    timed_out: int = 0  # registered after max_wait_s without all their samples (a late link)
     latencies_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
 
     def latency_ms(self, quantile: float) -> float:
@@ -47,19 +55,28 @@ class FrameLoopStats:
 
 
 class FrameLoop(Generic[ResultT]):
-    """Reads a source in a thread, processes the newest frame, fans results out."""
+    """Reads a source in a thread, processes the newest frame ready, fans results out.
+
+    `ready(frame)`: whether the samples its pose is made from have arrived; without it every
+    frame is ready when captured. Readiness must not go back in time: a frame ready makes
+    every older one ready too.
+    """
 
     def __init__(
         self,
         source: FrameSource,
         process: Callable[[Frame], ResultT],
         outputs: list[Callable[[ResultT], None]] | None = None,
+        ready: Callable[[Frame], bool] | None = None,
+        max_wait_s: float = 0.0,
     ) -> None:
         self.source = source
         self.process = process
         self.outputs = list(outputs or [])
+        self.ready = ready
+        self.max_wait_ns = round(max_wait_s * 1e9)
         self.stats = FrameLoopStats()
-        self._slot: Frame | None = None
+        self._pending: deque[tuple[Frame, int]] = deque()  # (frame, captured at)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._ended = False
@@ -77,11 +94,15 @@ class FrameLoop(Generic[ResultT]):
         try:
             while max_frames is None or self.stats.processed < max_frames:
                 wake.clear()  # before taking, so a frame arriving meanwhile still wakes us
-                frame = self._take()
+                frame = self._take(time.monotonic_ns())
                 if frame is None:
-                    if self._ended or self._stop.is_set():
+                    if self._stop.is_set() or (self._ended and not self._pending):
                         break
-                    await wake.wait()
+                    if self._pending:  # held for samples, which no event announces
+                        with contextlib.suppress(TimeoutError):
+                            await asyncio.wait_for(wake.wait(), WAIT_POLL_S)
+                    else:
+                        await wake.wait()
                     continue
                 await self._handle(frame)
         finally:
@@ -97,6 +118,7 @@ class FrameLoop(Generic[ResultT]):
             "processed": self.stats.processed,
             "dropped": self.stats.dropped,
             "failed": self.stats.failed,
+            "timed_out": self.stats.timed_out,
             "source_ended": self._ended,
             "latency_ms_p50": None if math.isnan(p50) else round(p50, 2),
             "latency_ms_p95": None if math.isnan(p95) else round(p95, 2),
@@ -132,11 +154,29 @@ class FrameLoop(Generic[ResultT]):
             except Exception:
                 log.exception("frame output %r failed", output)
 
-    def _take(self) -> Frame | None:
-        """Empty the mailbox."""
+    def _take(self, now_ns: int) -> Frame | None:
+        """The oldest frame due (ready, or held max_wait_s), skipping those held longer while a
+        newer one is due too: a slow registration drops frames instead of lagging. None if no
+        frame is due. Both conditions hold for a prefix of the frames held, oldest first."""
         with self._lock:
-            frame, self._slot = self._slot, None
-        return frame
+            held = self._pending
+            due = [self._is_ready(f) or now_ns - at >= self.max_wait_ns for f, at in held]
+            if not any(due):
+                return None
+            newest = max(i for i, d in enumerate(due) if d)
+            fresh = (i for i in range(newest) if now_ns - held[i][1] < self.max_wait_ns)
+            take = next(fresh, newest)
+            for _ in range(take):
+                held.popleft()
+                self.stats.dropped += 1
+            frame, _ = held.popleft()
+            if not self._is_ready(frame):
+                self.stats.timed_out += 1
+            return frame
+
+    def _is_ready(self, frame: Frame) -> bool:
+        """Whether a frame's samples are in (always, without a `ready` test)."""
+        return self.ready is None or self.ready(frame)
 
     def _capture(self, loop: asyncio.AbstractEventLoop, wake: asyncio.Event) -> None:
         """Capture thread: newest frame wins the mailbox."""
@@ -146,9 +186,10 @@ class FrameLoop(Generic[ResultT]):
                 if frame is None:
                     break
                 with self._lock:
-                    if self._slot is not None:
+                    if len(self._pending) >= PENDING_LIMIT:
+                        self._pending.popleft()
                         self.stats.dropped += 1
-                    self._slot = frame
+                    self._pending.append((frame, time.monotonic_ns()))
                     self.stats.captured += 1
                 with contextlib.suppress(RuntimeError):  # loop closed while we read
                     loop.call_soon_threadsafe(wake.set)

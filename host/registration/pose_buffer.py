@@ -115,6 +115,11 @@ class SampleBuffer:
             self._resets.popleft()
         return True
 
+    def newest_ns(self) -> int | None:
+        """Stamp of the newest sample, None when empty."""
+        with self._lock:
+            return int(self._t[self._start + self._count - 1]) if self._count else None
+
     def clear(self) -> None:
         """Forget all samples (e.g. after a re-home or a clock resync)."""
         with self._lock:

@@ -23,6 +23,9 @@ RAW_CAPACITY = 512  # uncorrected samples kept for late fixes (> 1 s at 500 Hz)
 # A reading may be stamped after the newest encoder sample (another stream, same tick or later):
 # the trolley is carried forward at most this far to place it; 50 Hz encoders need 20 ms.
 RAW_HORIZON_NS = 50_000_000
+# A frame waits for a reading after it only while readings flow: one this much older than the
+# newest encoder sample says the rangefinder is off, aimed at nothing or lost.
+RANGE_FLOWING_NS = 500_000_000
 
 
 @dataclasses.dataclass
@@ -61,6 +64,7 @@ class PoseFeed:
     ranges_unplaced: int = 0  # of those, not used: unhomed, or no encoder/head sample around
     homed: bool = False  # Inputs.HOMED of the latest encoder sample
     zero_resets: int = 0  # HOMED flag changes seen: the buffer is never bridged across them
+    last_range_ns: int | None = None  # stamp of the newest RANGE sample
     _raw: SampleBuffer = dataclasses.field(
         default_factory=lambda: SampleBuffer(1, RAW_CAPACITY, RAW_HORIZON_NS)
     )
@@ -94,6 +98,20 @@ class PoseFeed:
         enc = self._raw.lookup(t_host_ns)
         return None if enc.value is None else self.home_s_mm + float(enc.value[0])
 
+    def covers(self, t_host_ns: int) -> bool:
+        """Whether the samples a pose at t is made from have come in: an encoder sample at or
+        after t, and, while rangefinder readings flow, a reading at or after t (a tooth skip
+        before t shows in it). The head is not waited for: its samples are sparse on a slow
+        link (10 Hz over XBee), and it is steady or slow where the trolley is fast."""
+        newest = self.encoder.newest_ns()
+        if newest is None:  # no stream (no link, or just re-homed): nothing to wait for
+            return True
+        if newest < t_host_ns:
+            return False
+        last = self.last_range_ns
+        flowing = self.ranger is not None and last is not None and newest - last < RANGE_FLOWING_NS
+        return not flowing or (last is not None and last >= t_host_ns)
+
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
         """One head sample."""
         self.head.push(t_host_ns, [pan_rad, tilt_rad])
@@ -101,6 +119,7 @@ class PoseFeed:
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
         """A rangefinder reading: an absolute reference when it lands on a surveyed surface."""
         self.ranges_seen += 1
+        self.last_range_ns = t_host_ns
         if self.ranger is None or self.chain is None:
             return
         enc = self._raw.lookup(t_host_ns)

@@ -130,6 +130,18 @@ def stream_rates(kind: str, ranging: bool, batched: bool = True) -> dict[Stream,
     return rates if batched or plan is None else plan.unbatched(rates)
 
 
+# How long a frame may wait for the samples of its exposure (`registration.frame_wait_ms =
+# "auto"`, host.frames.loop): about the longest a sample arrives after a frame stamped at the
+# same instant. Over XBee a batch holds its oldest sample 40–60 ms and the trip and the air add
+# 25–50 ms (the budget above); serial and CAN batches are 5 ms old.
+FRAME_WAIT_MS: dict[str, float] = {"serial": 30.0, "xbee": 150.0, "can": 20.0}
+
+
+def frame_wait_s(kind: str, configured: float | str = "auto") -> float:
+    """The longest a frame waits for its samples on this link kind, in seconds."""
+    return (FRAME_WAIT_MS[kind] if configured == "auto" else float(configured)) / 1000.0
+
+
 ENCODER_HORIZON_NS = 50_000_000  # carry the trolley forward at most 50 ms past its last sample
 HEAD_HORIZON_NS = 150_000_000  # head samples are slower and the head moves slowly
 MAX_GAP_NS = 300_000_000
@@ -482,6 +494,7 @@ class CameraPoseLoop:
         sink: PoseSink,
         record_tap: RecordTap,
         poses: tuple[PoseSource, PoseFeed] | None = None,
+        max_wait_s: float = 0.0,
     ) -> None:
         self.frame_tap = LatestFrameTap(source)  # the newest frame, for calibration runs
         self.source: FrameSource = self.frame_tap
@@ -491,7 +504,9 @@ class CameraPoseLoop:
         self.sink = sink
         self.record_tap = record_tap
         self.unregistered = 0  # frames whose exposure had no usable pose
-        self.loop: FrameLoop[Registration] = FrameLoop(self.source, registrar, [self._publish])
+        self.loop: FrameLoop[Registration] = FrameLoop(
+            self.source, registrar, [self._publish], self._samples_in, max_wait_s
+        )
         self._meter = RateMeter()
 
     @property
@@ -518,6 +533,13 @@ class CameraPoseLoop:
         finally:
             self.loop.stop()
             self.source.close()
+
+    def _samples_in(self, frame: Frame) -> bool:
+        """Whether the link has delivered the samples of the frame's exposure."""
+        if self.poses is None:
+            return True
+        poses, feed = self.poses
+        return feed.covers(frame.exposure_ns - poses.exposure_latency_ns)
 
     def _publish(self, reg: Registration) -> None:
         """A registered frame (recorded by its FrameTap) → a PoseSample if it has a pose."""
@@ -572,6 +594,9 @@ def frame_loop_factory(
     T_w_p = workpiece_pose(config)  # fixed: measured at set-up, the workpiece does not move
     registrar = Registrar(poses, build_camera(config), model, lambda t_ns: T_w_p, draw=False)
     recorded = FrameTap(registrar, record_tap)  # frames and their images to the recording
-    camera_loop = CameraPoseLoop(camera, recorded, controller, pose_sink, record_tap, (poses, feed))
+    wait_s = frame_wait_s(config.link.kind, config.registration.frame_wait_ms)
+    camera_loop = CameraPoseLoop(
+        camera, recorded, controller, pose_sink, record_tap, (poses, feed), wait_s
+    )
     camera_loop.rig = rig_spec(config)
     return camera_loop

@@ -82,3 +82,40 @@ async def test_max_frames_bounds_the_run(limit: int) -> None:
     loop = FrameLoop(FakeSource(100, 0.001), lambda f: f.index)
     await loop.run(max_frames=limit)
     assert loop.stats.processed == limit
+
+
+async def test_a_frame_waits_for_its_samples_and_is_registered_once_they_are_in() -> None:
+    arrived = threading.Event()  # the link delivering the samples of the frames' exposures
+    seen: list[int] = []
+    loop = FrameLoop(
+        FakeSource(3, 0.001), lambda f: f.index, [seen.append], lambda f: arrived.is_set(), 5.0
+    )
+    threading.Timer(0.1, arrived.set).start()
+    t0 = time.monotonic()
+    await loop.run()
+    assert time.monotonic() - t0 >= 0.1  # nothing was registered before the samples came
+    assert seen == [1, 2, 3]  # frames that became ready together are all registered, in order
+    assert (loop.stats.dropped, loop.stats.timed_out) == (0, 0)
+
+
+async def test_a_frame_whose_samples_never_come_is_registered_after_the_longest_wait() -> None:
+    seen: list[int] = []
+    loop = FrameLoop(FakeSource(4, 0.001), lambda f: f.index, [seen.append], lambda f: False, 0.03)
+    await loop.run()
+    assert seen[-1] == 4  # none lost to waiting: each went out at the wait's end
+    assert loop.stats.timed_out == len(seen)
+    assert loop.stats.processed + loop.stats.dropped == loop.stats.captured
+    assert loop.stats.latency_ms(0.5) >= 30.0
+
+
+async def test_a_slow_registration_still_drops_frames_that_waited_out() -> None:
+    def slow(frame: Frame) -> int:
+        time.sleep(0.02)
+        return frame.index
+
+    seen: list[int] = []
+    loop = FrameLoop(FakeSource(60, 0.002), slow, [seen.append], lambda f: True, 0.01)
+    await loop.run()
+    assert loop.stats.dropped > 20  # a backlog is not kept past the wait
+    assert seen == sorted(seen)
+    assert seen[-1] == 60
