@@ -48,10 +48,17 @@ class LatencyThresholds:
 
     min_frames: int = 12
     max_sigma_ms: float = 2.0
+    # A frame is stamped at or after its exposure (at delivery, or at a trigger): a latency
+    # below this by more than 3 σ is not a camera's; the passes measured something else
+    # (a jump of the pose source's arc length, a clock step).
+    min_ms: float = 0.0
 
     def text(self) -> str:
         """One line for the verdict."""
-        return f"≥ {self.min_frames} frames at constant speed, σ ≤ {self.max_sigma_ms} ms"
+        return (
+            f"≥ {self.min_frames} frames at constant speed, σ ≤ {self.max_sigma_ms} ms, "
+            f"latency ≥ {self.min_ms} ms within 3 σ"
+        )
 
 
 @dataclass(frozen=True)
@@ -227,6 +234,13 @@ def judge(
         out.passed = False
         why = f"σ {fit_sigma:.2f} ms > {limits.max_sigma_ms} ms (more passes, or faster)"
         out.reasons = [why]
+    elif out.new_ms + 3.0 * sigma < limits.min_ms:
+        out.passed = False
+        out.reasons = [
+            f"latency {out.new_ms:.2f} ± {sigma:.2f} ms: a frame cannot be stamped before its "
+            f"exposure (< {limits.min_ms} ms by more than 3 σ); the pose source's arc length "
+            "or the link's clock jumped during the passes: run it again"
+        ]
     else:
         out.reasons = [
             f"latency {out.new_ms:.2f} ± {sigma:.2f} ms over {n} frames (was {old_ms:.2f} ms)"

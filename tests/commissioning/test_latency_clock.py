@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from host.calibration.board import BoardSpec, Detection
-from host.commissioning.latency_run import LatencyThresholds, PassFrame, judge
+from host.commissioning.latency_run import LatencyThresholds, PassFrame, judge, latency_update
 from host.commissioning.ops import _clock_sigma_ms
 from host.geometry.camera import CameraModel
 from host.geometry.head import Rig
@@ -84,3 +84,16 @@ def test_the_clocks_sigma_is_reported_not_failed() -> None:
     assert loaded.passed
     assert quiet.new_ms == pytest.approx(20.0, abs=0.01)
     assert loaded.sigma_ms >= 3.0
+
+
+def test_a_latency_no_camera_can_have_fails_and_says_why() -> None:
+    """Frames that read as stamped 40 ms before their exposure (what a jump of the arc length
+    during the passes once gave): refused, with the reason; a latency near 0 still passes."""
+    limits = LatencyThresholds()
+    impossible = judge(*passes_past_a_board(-40.0), 0.0, limits, clock_sigma_ms=0.5)
+    assert not impossible.passed
+    assert "cannot be stamped before its exposure" in impossible.reasons[0]
+    with pytest.raises(ValueError):
+        latency_update(impossible)
+    triggered = judge(*passes_past_a_board(-0.5), 0.0, limits, clock_sigma_ms=0.5)
+    assert triggered.passed  # within 3 σ of a trigger's stamp at the exposure
