@@ -219,7 +219,32 @@ def summary_text(results: dict[str, Any]) -> str:
         + " / ".join(f"{v:.2f}" for v in row45["monte_carlo_mm"])
         + "); paper 1.51 / 1.55 / 1.13"
     )
+    if (note := unposed_note(results)) is not None:
+        lines.append(note)
     return "\n".join(lines)
+
+
+def unposed_note(results: dict[str, Any]) -> str | None:
+    """Why a figure above reads nan: the experiments whose frames had no usable pose."""
+    empty = [
+        f"static {point} mm ({row['frames']} frames)"
+        for point, row in results["static"].items()
+        if row["offset_mm"]["n"] == 0
+    ]
+    if results["moving"]["samples"] == 0:
+        empty.append("moving")
+    if results["drift"]["fused_px"]["n"] == 0:
+        empty.append("drift")
+    if not empty:
+        return None
+    latency = results.get("calibration", {}).get("camera.latency_ms", {}).get("estimate")
+    said = f" (the host's camera latency: {latency:.2f} ms)" if latency is not None else ""
+    return (
+        f"No frame had a usable pose in: {', '.join(empty)}; their figures read nan. A frame "
+        "has none when the samples around its exposure are missing: a camera latency the "
+        f"pose buffers do not reach{said}, or a link that stalled (results.json: link_stats, "
+        "frame_loop)."
+    )
 
 
 def _drift_figure(results: dict[str, Any]) -> Any:

@@ -93,7 +93,7 @@ def test_a_latency_no_camera_can_have_fails_and_says_why() -> None:
     impossible = judge(*passes_past_a_board(-40.0), 0.0, limits, clock_sigma_ms=0.5)
     assert not impossible.passed
     assert "cannot be stamped before its exposure" in impossible.reasons[0]
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="only a passing calibration"):
         latency_update(impossible)
     triggered = judge(*passes_past_a_board(-0.5), 0.0, limits, clock_sigma_ms=0.5)
     assert triggered.passed  # within 3 σ of a trigger's stamp at the exposure

@@ -30,3 +30,23 @@ def test_report_writes_html_with_inlined_images_and_json(tmp_path: Path) -> None
     assert 'src="http' not in text
     data = json.loads((tmp_path / "out" / "results.json").read_text())
     assert data == {"rms": 0.25, "arr": [0, 1, 2], "bad": None}
+
+
+def _results(n_static: int, n_moving: int, n_drift: int) -> dict[str, object]:
+    """The parts of results.json that say whether frames had a pose."""
+    return {
+        "static": {"0": {"offset_mm": {"n": n_static}, "frames": 12}},
+        "moving": {"samples": n_moving},
+        "drift": {"fused_px": {"n": n_drift}},
+        "calibration": {"camera.latency_ms": {"estimate": -42.5}},
+    }
+
+
+def test_a_nan_figure_comes_with_the_reason() -> None:
+    from host.demo.report_pages import unposed_note
+
+    assert unposed_note(_results(8, 8, 200)) is None
+    note = unposed_note(_results(0, 0, 0))
+    assert note is not None
+    assert "static 0 mm (12 frames), moving, drift" in note
+    assert "-42.50 ms" in note
