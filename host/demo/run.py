@@ -256,6 +256,7 @@ async def _experiments(
             "captured": loop.stats.captured,
             "processed": loop.stats.processed,
             "dropped": loop.stats.dropped,
+            "timed_out": loop.stats.timed_out,  # registered without all their samples
             "latency_ms_median": loop.stats.latency_ms(0.5),
             "latency_ms_p99": loop.stats.latency_ms(0.99),
         }

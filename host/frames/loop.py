@@ -157,15 +157,15 @@ class FrameLoop(Generic[ResultT]):
     def _take(self, now_ns: int) -> Frame | None:
         """The oldest frame due (ready, or held max_wait_s), skipping those held longer while a
         newer one is due too: a slow registration drops frames instead of lagging. None if no
-        frame is due. Both conditions hold for a prefix of the frames held, oldest first."""
+        frame is due."""
         with self._lock:
             held = self._pending
-            due = [self._is_ready(f) or now_ns - at >= self.max_wait_ns for f, at in held]
+            late = [now_ns - at >= self.max_wait_ns for _, at in held]
+            due = [late[i] or self._is_ready(f) for i, (f, _) in enumerate(held)]
             if not any(due):
                 return None
             newest = max(i for i, d in enumerate(due) if d)
-            fresh = (i for i in range(newest) if now_ns - held[i][1] < self.max_wait_ns)
-            take = next(fresh, newest)
+            take = next((i for i in range(newest) if due[i] and not late[i]), newest)
             for _ in range(take):
                 held.popleft()
                 self.stats.dropped += 1
