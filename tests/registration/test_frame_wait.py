@@ -13,7 +13,13 @@ from host.config_fields import ConfigError
 from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
 from host.registration.track_feed import RANGE_FLOWING_NS, PoseFeed
-from host.service.wiring import FRAME_WAIT_MS, frame_wait_s
+from host.service.wiring import (
+    ENCODER_HORIZON_NS,
+    FRAME_WAIT_MS,
+    HEAD_HORIZON_NS,
+    MAX_GAP_NS,
+    frame_wait_s,
+)
 from protocol.enums import Inputs
 from tests.fusion.test_range_fix import AHEAD, HALL, RIG, _reading
 
@@ -80,3 +86,84 @@ def test_a_bad_wait_names_the_key(value: str) -> None:
     with pytest.raises(ConfigError) as err:
         loads_config(f"[registration]\nframe_wait_ms = {value}\n")
     assert "registration.frame_wait_ms" in str(err.value)
+
+
+# A radio-like schedule: each stream's samples arrive a fixed delay after their stamps (a batch's
+# store-and-forward; range batches are older than encoder ones, as over XBee); frames arrive
+# FRAME_DELIVERY_NS after their exposure.
+SPEED_MM_S = 500.0
+ENCODER_PERIOD_NS = 10 * MS
+RANGE_PERIOD_NS = 20 * MS
+FRAME_PERIOD_NS = 33 * MS
+ENCODER_DELAY_NS = 60 * MS
+RANGE_DELAY_NS = 80 * MS
+FRAME_DELIVERY_NS = 20 * MS
+# The chain jumps one tooth at 1010 ms. The first reading after it is stamped 1025 ms and in at
+# 1105 ms; the frame exposed at 1031 ms has its encoder samples in by 1100 ms: waiting for the
+# encoder alone would register it a pitch off.
+SKIP_NS = T0_NS + 1_010 * MS
+PITCH_MM = 12.7
+
+
+def _true_s(t_ns: int) -> float:
+    """Where the trolley is (track arc length); the encoder reads it without the skip."""
+    s = HOME_S_MM + SPEED_MM_S * (t_ns - T0_NS) / 1e9
+    return s + (PITCH_MM if t_ns >= SKIP_NS else 0.0)
+
+
+def _registrations(wait: bool) -> dict[int, float]:
+    """Each frame's fused arc length minus the truth at its exposure, registered on arrival
+    or once `covers` says its samples are in."""
+    from host.fusion.range_fix import RangeFixConfig
+
+    feed = PoseFeed(  # the daemon's horizons: the encoder carried at most 50 ms forward
+        SampleBuffer(1, 2048, ENCODER_HORIZON_NS, MAX_GAP_NS),
+        AngleBuffer(2, 2048, HEAD_HORIZON_NS, MAX_GAP_NS),
+        home_s_mm=HOME_S_MM,
+        ranger=RangeFixer(RIG, HALL, RangeFixConfig(noise_mm=0.2)),
+    )
+    events: list[tuple[int, int, str, int]] = []  # (arrives, order, kind, stamp)
+    end = T0_NS + 2_000 * MS
+    for t in range(T0_NS, end, ENCODER_PERIOD_NS):
+        events.append((t + ENCODER_DELAY_NS, 0, "encoder", t))
+    for t in range(T0_NS + 5 * MS, end, RANGE_PERIOD_NS):
+        events.append((t + RANGE_DELAY_NS, 1, "range", t))
+    for t in range(T0_NS + 305 * MS, end - 300 * MS, FRAME_PERIOD_NS):
+        events.append((t + FRAME_DELIVERY_NS, 2, "frame", t))
+    errors: dict[int, float] = {}
+    held: list[int] = []
+    for _, _, kind, t in sorted(events):
+        if kind == "encoder":
+            s_ctrl = SPEED_MM_S * (t - T0_NS) / 1e9
+            feed.on_encoder(t, s_ctrl, SPEED_MM_S, HOMED)
+            feed.on_head(t, *AHEAD)
+        elif kind == "range":
+            feed.on_range(t, _reading(_true_s(t)), 200)
+        else:
+            held.append(t)
+        for exposure in [e for e in held if not wait or feed.covers(e)]:
+            looked = feed.encoder.lookup(exposure)
+            assert looked.value is not None
+            errors[exposure] = float(looked.value[0]) - _true_s(exposure)
+            held.remove(exposure)
+    assert feed.chain is not None
+    assert feed.chain.stats.skips_detected == 1
+    return errors
+
+
+def test_a_frame_that_waits_for_the_reading_after_a_skip_shows_it_put_right() -> None:
+    on_arrival, waited = _registrations(wait=False), _registrations(wait=True)
+    first_reading = next(t for t in range(T0_NS + 5 * MS, SKIP_NS + 100 * MS, RANGE_PERIOD_NS)
+                         if t >= SKIP_NS)  # fmt: skip
+    # from the first encoder sample after that reading: the one before it is not corrected
+    after = [t for t in waited if t >= first_reading + ENCODER_PERIOD_NS // 2]
+    # Registered on arrival, the frames of the next ~80 ms carry the whole pitch: the reading
+    # that shows the skip is still on the way.
+    wrong_on_arrival = [t for t in after if abs(on_arrival[t]) > PITCH_MM / 2]
+    assert len(wrong_on_arrival) >= 2
+    # Waiting for a reading after the exposure, every frame from then on is right (one between
+    # the skip and that reading cannot be: nothing had seen the skip yet).
+    assert all(abs(waited[t]) < 0.5 for t in after)
+    before = [e for t, e in waited.items() if SKIP_NS - 300 * MS <= t < SKIP_NS]  # settled
+    assert before
+    assert all(abs(e) < 0.5 for e in before)
