@@ -98,19 +98,23 @@ class PoseFeed:
         enc = self._raw.lookup(t_host_ns)
         return None if enc.value is None else self.home_s_mm + float(enc.value[0])
 
-    def covers(self, t_host_ns: int) -> bool:
-        """Whether the samples a pose at t is made from have come in: an encoder sample at or
-        after t, and, while rangefinder readings flow, a reading at or after t (a tooth skip
-        before t shows in it). The head is not waited for: its samples are sparse on a slow
-        link (10 Hz over XBee), and it is steady or slow where the trolley is fast."""
+    def covered_until(self) -> int | None:
+        """The latest instant the samples in cover: the newest encoder sample, or, while
+        rangefinder readings flow, the newest reading if it is older (a tooth skip before it
+        shows in it); None without encoder samples. The head is not waited for: its samples
+        are sparse on a slow link (10 Hz over XBee), and it is steady or slow where the trolley
+        is fast."""
         newest = self.encoder.newest_ns()
-        if newest is None:  # no stream (no link, or just re-homed): nothing to wait for
-            return True
-        if newest < t_host_ns:
-            return False
         last = self.last_range_ns
-        flowing = self.ranger is not None and last is not None and newest - last < RANGE_FLOWING_NS
-        return not flowing or (last is not None and last >= t_host_ns)
+        if newest is None or self.ranger is None or last is None:
+            return newest
+        return min(newest, last) if newest - last < RANGE_FLOWING_NS else newest
+
+    def covers(self, t_host_ns: int) -> bool:
+        """Whether the samples a pose at t is made from have come in (`covered_until`); with no
+        stream at all (no link, or just re-homed) there is nothing to wait for."""
+        until = self.covered_until()
+        return until is None or t_host_ns <= until
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
         """One head sample."""

@@ -14,6 +14,7 @@ import asyncio
 import logging
 import math
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -424,8 +425,21 @@ def pose_sample(
 # ---- the loops ---------------------------------------------------------------------------
 
 
+# Without a camera the poses follow the link's lag: the longest of the last second, at most
+# LAG_CAP_NS (past it the link has stalled, and a pose for now is stale, not an old one re-sent).
+LAG_WINDOW_NS = 1_000_000_000
+LAG_CAP_NS = 250_000_000
+
+
 class PosePublisher:
-    """Without a camera: the pose at the current time, at a fixed rate, from the buffers."""
+    """Without a camera: poses at a fixed rate from the buffers, each for the latest instant
+    the link's samples reliably cover and stamped with it.
+
+    Over a slow link a pose for the current instant would be carried past the newest sample,
+    beyond the buffer's horizon most of the time: XBee batches arrive 20–100 ms after their
+    stamps, and such poses were stale on 69 % of the ticks. Each pose is made for now less the
+    longest lag of the last second instead (a few ms on serial and CAN).
+    """
 
     def __init__(
         self,
@@ -445,6 +459,8 @@ class PosePublisher:
         self.stale = 0  # ticks without a usable pose (no samples yet, or the stream stalled)
         self.off_track = 0  # of those, ticks with the trolley outside the surveyed open track
         self._meter = RateMeter()
+        self._lags: deque[tuple[int, int]] = deque()  # (tick, now − covered instant)
+        self._last_t_ns = 0
 
     @property
     def fps(self) -> float:
@@ -460,7 +476,19 @@ class PosePublisher:
             if next_ns < now:  # fell behind (a stalled loop): skip, do not burst
                 next_ns = now + self.period_ns
             await asyncio.sleep((next_ns - now) / 1e9)
-            self.publish(time.monotonic_ns())
+            t_ns = self.pose_time(time.monotonic_ns())
+            if t_ns > self._last_t_ns:  # a lag that grew would go back in time: wait instead
+                self._last_t_ns = t_ns
+                self.publish(t_ns)
+
+    def pose_time(self, now_ns: int) -> int:
+        """The instant to publish at `now_ns`: now less the link's recent lag."""
+        until = self.feed.covered_until() if self.feed is not None else None
+        lag = 0 if until is None else now_ns - until
+        self._lags.append((now_ns, lag if 0 < lag <= LAG_CAP_NS else 0))
+        while self._lags[0][0] < now_ns - LAG_WINDOW_NS:
+            self._lags.popleft()
+        return now_ns - max(held for _, held in self._lags)
 
     def apply_rig(self, config: Config) -> None:
         """A changed rig file (SIGHUP): the poses from now on use it."""

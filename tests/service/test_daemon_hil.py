@@ -227,3 +227,41 @@ def test_pose_publisher_publishes_only_from_samples() -> None:
     assert abs((got[-1].s_mm or 0.0) - 150.0) < 1e-6  # 100 mm home offset + 50 mm along
     assert not publisher.publish(1_000_000_000 + 500_000_000)  # far past: stale, never a guess
     assert publisher.published == 1
+
+
+def test_without_a_camera_poses_follow_a_radios_lag_instead_of_going_stale() -> None:
+    # XBee-like: encoder batches of 5 samples (10 ms apart) leave every 50 ms and arrive 20 ms
+    # after their newest sample. A pose for "now" is then carried up to 70 ms past the newest
+    # sample, beyond the 50 ms horizon; the publisher makes each for now less the recent lag.
+    from host.config import Config
+    from host.control.api import PoseSample
+    from host.service.wiring import STREAM_RATES_HZ, PosePublisher, build_pose_source
+
+    def run(follow_lag: bool) -> tuple[int, int, list[PoseSample]]:
+        poses, feed = build_pose_source(Config(), STREAM_RATES_HZ["xbee"])
+        got: list[PoseSample] = []
+
+        class _Ctl:
+            def snapshot(self) -> dict[str, Any]:
+                return {"state": "MOVING", "homed": True}
+
+        publisher = PosePublisher(poses, _Ctl(), got.append, 30.0, feed)  # type: ignore[arg-type]
+        ms, t0 = 1_000_000, 1_000_000_000
+        stamps = [t0 + 10 * ms * k for k in range(300)]
+        arrivals = [t0 + 50 * ms * (k // 5) + 60 * ms for k in range(300)]
+        pushed = 0
+        for tick in range(t0 + 200 * ms, t0 + 2_900 * ms, 33 * ms):
+            while pushed < len(stamps) and arrivals[pushed] <= tick:
+                feed.on_encoder(stamps[pushed], 0.5 * (stamps[pushed] - t0) / ms, 500.0, 1)
+                feed.on_head(stamps[pushed], 0.0, 0.0)
+                pushed += 1
+            publisher.publish(publisher.pose_time(tick) if follow_lag else tick)
+        return publisher.published, publisher.stale, got
+
+    _, stale_now, _ = run(follow_lag=False)
+    published, stale, got = run(follow_lag=True)
+    assert stale_now > 20  # for "now" a third of the ticks or more had no pose
+    assert stale == 0
+    for pose in got:  # made from samples around the instant it is stamped with: exact
+        assert pose.s_mm == pytest.approx(0.5 * (pose.t_ns - 1_000_000_000) / 1_000_000, abs=1e-6)
+    assert published == len(got) > 70
