@@ -1,4 +1,4 @@
-"""The frame loop: capture off the event loop, register the newest frame whose samples are in.
+"""The frame loop: capture off the event loop, register each frame once its samples are in.
 
 A capture thread reads the source as fast as it delivers and hands each frame to the event
 loop, which runs the (CPU-bound) processing in a worker thread and gives the result to the
@@ -55,11 +55,10 @@ class FrameLoopStats:
 
 
 class FrameLoop(Generic[ResultT]):
-    """Reads a source in a thread, processes the newest frame ready, fans results out.
+    """Reads a source in a thread, processes the frames as they become due, fans results out.
 
     `ready(frame)`: whether the samples its pose is made from have arrived; without it every
-    frame is ready when captured. Readiness must not go back in time: a frame ready makes
-    every older one ready too.
+    frame is ready when captured, and the newest one wins.
     """
 
     def __init__(
