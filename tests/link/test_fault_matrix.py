@@ -483,8 +483,9 @@ def check_statistics(rig: Rig) -> dict[str, int]:
     # cost one more frame than was injected.
     reorder_losses = figures.get("can_reordered", 0) + figures.get("can_timeouts", 0)
     # Frames in flight when the link is unplugged or the controller resets are lost without
-    # the injector counting them: a few per event, hence the absolute floor.
-    slack = max(15, 0.3 * expected_gaps)
+    # the injector counting them: a few per event, more when a loaded machine stretches the
+    # unplugged window (CAN, whole default suite on 2 cores: 18), hence the absolute floor.
+    slack = max(25, 0.3 * expected_gaps)
     assert -slack <= stats.rx_lost - expected_gaps <= slack + reorder_losses, figures
     assert abs(stats.drops.total() - corrupted) <= max(3, 0.3 * corrupted), figures
     return figures
