@@ -39,6 +39,7 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 
 GATE_SIGMAS = 4.0  # innovations beyond this many σ are not taken at face value
+HOMING_REPEATABILITY_MM = 1.0  # σ of the zero between homings: the same switch and index
 SKIP_TOLERANCE_MM = 2.0  # how near a whole number of pitches a jump must be to be a skip
 # A reference may call a skip only if its σ (with the prediction's) keeps the tolerance band,
 # widened by GATE_SIGMAS σ, inside half a pitch: otherwise k and k ± 1 pitches both fit.
@@ -50,7 +51,9 @@ class ChainFilterConfig:
 
     chain_pitch_mm: float = 12.7
     scale_sigma0: float = 0.01  # prior σ of the chain scale (1 %: worn chains stretch ≲ 3 %)
-    offset_sigma0_mm: float = 1.0  # prior σ of the offset after homing
+    # prior σ of the offset after homing: the homing's repeatability, and how well the zero's
+    # place on the track is known (a rig file's home σ: `rig_references.chain_config`)
+    offset_sigma0_mm: float = HOMING_REPEATABILITY_MM
     scale_walk_per_m: float = 1e-5  # scale random walk, σ per √m of travel
     offset_walk_mm_per_m: float = 0.02  # offset random walk, mm per √m of travel
     reference_sigma_mm: float = 0.1  # σ of one reference detection

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from host.fusion.chain_filter import ChainFilterConfig
+from host.fusion.chain_filter import HOMING_REPEATABILITY_MM, ChainFilterConfig
 from host.fusion.range_fix import RangeFixConfig, RangeFixer, Systematic
 from host.geometry.head import Rig
 from host.rig import RigSpec, build_scene
@@ -27,11 +27,21 @@ def marks_sigma_mm(spec: RigSpec) -> float:
 
 def chain_config(spec: RigSpec, pitch_mm: float) -> ChainFilterConfig:
     """The chain filter with the rig file's marks σ, and the range model's parameters (their
-    σ from the rig file) as states when it lists surveyed surfaces the fixes rest on."""
+    σ from the rig file) as states when it lists surveyed surfaces the fixes rest on.
+
+    The offset's prior is the homing's repeatability and the home's σ together: a reference
+    is taken relative to the rig file's home, so an error in it is an offset the filter must
+    be free to learn. With the prior at the repeatability alone, a zero known to ±6 mm (a
+    first survey through a drawing's rig) left a fix half a pitch off either refused, so the
+    pose kept the zero's error, or taken for a tooth skip, which moved it by the rest.
+    """
     cov = Systematic.of(spec).covariance
     bias = cov if spec.hall.surfaces and np.any(cov) else None  # none for an exact model
     return ChainFilterConfig(
-        chain_pitch_mm=pitch_mm, reference_sigma_mm=marks_sigma_mm(spec), bias_cov=bias
+        chain_pitch_mm=pitch_mm,
+        offset_sigma0_mm=math.hypot(HOMING_REPEATABILITY_MM, spec.track.home.sigma),
+        reference_sigma_mm=marks_sigma_mm(spec),
+        bias_cov=bias,
     )
 
 

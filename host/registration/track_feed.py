@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -26,6 +27,17 @@ RAW_HORIZON_NS = 50_000_000
 # A frame waits for a reading after it only while readings flow: one this much older than the
 # newest encoder sample says the rangefinder is off, aimed at nothing or lost.
 RANGE_FLOWING_NS = 500_000_000
+# A reading is a fix only if the head held still around it: the beam's direction comes from
+# head samples (10 Hz over XBee) interpolated to the reading's stamp, and during a slew (1-2
+# rad/s) a few milliseconds of that put the beam centimetres along a wall, which a fix reads
+# as whole tooth skips. So a reading waits until the head's samples reach HEAD_STILL_NS past
+# it, and is used only if the head turned less than HEAD_STILL_RAD over that span either side.
+HEAD_STILL_NS = 20_000_000
+HEAD_STILL_RAD = 2e-3
+# A reading the head's samples have not reached after this long (the head stream stopped) is
+# left unplaced; at most PENDING_RANGES wait at once (the oldest is then dropped, unplaced).
+HEAD_WAIT_NS = 500_000_000
+PENDING_RANGES = 256
 
 
 @dataclasses.dataclass
@@ -62,11 +74,16 @@ class PoseFeed:
     marks_unhomed: int = 0  # of those, ignored: the controller's zero was not referenced yet
     ranges_seen: int = 0  # RANGE samples received
     ranges_unplaced: int = 0  # of those, not used: unhomed, or no encoder/head sample around
+    ranges_head_moving: int = 0  # of those, not used: the head turned around the reading
     homed: bool = False  # Inputs.HOMED of the latest encoder sample
     zero_resets: int = 0  # HOMED flag changes seen: the buffer is never bridged across them
-    last_range_ns: int | None = None  # stamp of the newest RANGE sample
+    last_range_ns: int | None = None  # stamp of the newest RANGE sample decided (used or not)
     _raw: SampleBuffer = dataclasses.field(
         default_factory=lambda: SampleBuffer(1, RAW_CAPACITY, RAW_HORIZON_NS)
+    )
+    # readings waiting for the head's samples past them: (stamp, distance, quality)
+    _pending: deque[tuple[int, float, int]] = dataclasses.field(
+        default_factory=lambda: deque(maxlen=PENDING_RANGES)
     )
 
     def __post_init__(self) -> None:
@@ -100,9 +117,10 @@ class PoseFeed:
 
     def covered_until(self) -> int | None:
         """The latest instant the samples in cover: the newest encoder sample, or, while
-        rangefinder readings flow, the newest reading if it is older (a tooth skip before it
-        shows in it); None without encoder samples. The head is not waited for: its samples
-        are sparse on a slow link (10 Hz over XBee), and it is steady or slow where the trolley
+        rangefinder readings flow, the newest reading decided if it is older (a tooth skip
+        before it shows in it); None without encoder samples. The head is waited for only
+        through the readings (each waits for the head's samples past it): its samples are
+        sparse on a slow link (10 Hz over XBee), and it is steady or slow where the trolley
         is fast."""
         newest = self.encoder.newest_ns()
         last = self.last_range_ns
@@ -117,19 +135,58 @@ class PoseFeed:
         return until is None or t_host_ns <= until
 
     def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
-        """One head sample."""
+        """One head sample; it may reach past readings that waited for it."""
         self.head.push(t_host_ns, [pan_rad, tilt_rad])
+        self._decide_ranges()
 
     def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
-        """A rangefinder reading: an absolute reference when it lands on a surveyed surface."""
+        """A rangefinder reading: an absolute reference when it lands on a surveyed surface,
+        decided once the head's samples reach past it (`HEAD_STILL_NS`)."""
         self.ranges_seen += 1
-        self.last_range_ns = t_host_ns
         if self.ranger is None or self.chain is None:
+            self.last_range_ns = t_host_ns
             return
+        if len(self._pending) == self._pending.maxlen:
+            self._pending.popleft()  # the head stream stalled for longer than the queue lasts
+            self.ranges_unplaced += 1
+        self._pending.append((t_host_ns, distance_mm, quality))
+        self._decide_ranges()
+
+    def _decide_ranges(self) -> None:
+        """Use or refuse, in order, the readings the head's samples now reach past."""
+        head_ns, enc_ns = self.head.newest_ns(), self.encoder.newest_ns()
+        while self._pending:
+            t_ns, distance_mm, quality = self._pending[0]
+            reached = head_ns is not None and head_ns >= t_ns + HEAD_STILL_NS
+            given_up = enc_ns is not None and enc_ns > t_ns + HEAD_WAIT_NS
+            if not (reached or given_up):
+                return
+            self._pending.popleft()
+            self.last_range_ns = t_ns
+            if reached:
+                self._range_fix(t_ns, distance_mm, quality)
+            else:
+                self.ranges_unplaced += 1
+
+    def _head_still(self, t_ns: int) -> bool:
+        """Whether the head turned less than HEAD_STILL_RAD within HEAD_STILL_NS of t."""
+        before, after = (self.head.lookup(t_ns + d) for d in (-HEAD_STILL_NS, HEAD_STILL_NS))
+        if before.value is None or after.value is None:
+            return True  # no sample before: the head's own lookup at t decides
+        turn = np.remainder(after.value - before.value + math.pi, 2.0 * math.pi) - math.pi
+        return float(np.max(np.abs(turn))) < HEAD_STILL_RAD
+
+    def _range_fix(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """One reading the head's samples reach past: a fix when it can be placed."""
+        assert self.ranger is not None
+        assert self.chain is not None
         enc = self._raw.lookup(t_host_ns)
         angles = self.head.lookup(t_host_ns)
         if not self.homed or enc.value is None or angles.value is None:
             self.ranges_unplaced += 1
+            return
+        if not self._head_still(t_host_ns):
+            self.ranges_head_moving += 1
             return
         self._adopt_controller_pitch()
         rel = float(enc.value[0])
@@ -183,6 +240,8 @@ class PoseFeed:
         if self.ranger is not None:
             out["ranges_seen"] = self.ranges_seen
             out["ranges_unplaced"] = self.ranges_unplaced
+            out["ranges_head_moving"] = self.ranges_head_moving
+            out["ranges_pending"] = len(self._pending)
             out.update({f"range_{k}": v for k, v in vars(self.ranger.stats).items()})
         return out
 
@@ -191,6 +250,8 @@ class PoseFeed:
         self.home_s_mm = home_s_mm
         self.encoder.clear()
         self._raw.clear()
+        self.ranges_unplaced += len(self._pending)  # stamped in the old zero's coordinates
+        self._pending.clear()
         self._restart_filter()
 
     def _follow_homing(self, homed: bool) -> bool:

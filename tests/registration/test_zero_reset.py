@@ -132,11 +132,14 @@ def test_a_reading_from_before_the_latch_is_no_reference_after_it() -> None:
     # old coordinates, so as references they would shift the new zero by 3 mm.
     for k in (8, 9):
         feed.on_range(T0_NS + k * SAMPLE_NS + MS, _reading(true_s(k)), 200)
+    for k in (11, 12, 13, 14):  # the head's samples reach past them: now they are decided
+        feed.on_encoder(T0_NS + k * SAMPLE_NS, true_s(k) - HOME_S_MM, SEEK_MM_S, HOMED)
+        feed.on_head(T0_NS + k * SAMPLE_NS, *AHEAD)
     assert feed.ranges_unplaced == 2
     assert feed.chain is not None
     stats = feed.chain.stats
     assert (stats.updates, stats.rejected, stats.skips_detected) == (0, 0, 0)
-    assert feed.s_mm == pytest.approx(true_s(10))
+    assert feed.s_mm == pytest.approx(true_s(14))
 
 
 def test_the_uncorrected_arc_length_does_not_follow_a_tooth_skip() -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from host.config import Config, loads_config
 from host.fusion.rig_references import chain_config, marks_sigma_mm
-from host.registration.track_feed import DEFAULT_CHAIN_PITCH_MM, PoseFeed
+from host.registration.track_feed import DEFAULT_CHAIN_PITCH_MM, HEAD_STILL_NS, PoseFeed
 from host.rig import RigSpec
 from host.service.wiring import (
     STREAM_RATES_HZ,
@@ -217,6 +217,7 @@ def test_surveyed_surfaces_give_the_feed_rangefinder_fixes() -> None:
         feed.on_head(t, 0.0, math.pi / 2)
         true_s = 100.0 + STRETCH * i * STEP_MM
         feed.on_range(t + 1, 8000.0 - true_s, 200)
+    feed.on_head(t + HEAD_STILL_NS + 1, 0.0, math.pi / 2)  # past the last reading: all decided
     assert feed.ranger.stats.fixes == 40
     assert feed.s_mm == pytest.approx(100.0 + STRETCH * 39 * STEP_MM, abs=0.2)
     assert feed.stats()["range_fixes"] == 40
