@@ -16,7 +16,7 @@ import asyncio
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,12 @@ from host.commissioning.client import CommissioningPlan, RunFailedError, run_op
 from host.commissioning.plan import IMAGE_TARGETS, board_plan
 from host.control.client import ControlClient
 from host.demo.daemon_phase import RunningDaemon
-from host.demo.experiments import DEMO_WATCHDOG_MS, LOOK_AHEAD_PAN_RAD, LOOK_AHEAD_TILT_RAD
+from host.demo.experiments import (
+    DEMO_WATCHDOG_MS,
+    LOOK_AHEAD_PAN_RAD,
+    LOOK_AHEAD_TILT_RAD,
+    clock_error_us,
+)
 from host.demo.rigs import DemoRigs, model_of
 from host.demo.world import SimWorld
 from host.geometry.camera import CameraModel
@@ -40,6 +45,7 @@ from host.geometry.transforms import (
     rotvec_to_R,
     transform_points,
 )
+from host.link import Controller
 from host.rig import RigSpec
 from host.station.parts import load_parts, sidecar_path
 from protocol.enums import Inputs
@@ -88,6 +94,7 @@ POLL_S = 0.5  # status computes the error budget: do not load the daemon's loop 
 HOMED = int(Inputs.HOMED)
 STEP_TRIES = 2
 CLOCK_SYNCED_US = 1000.0
+CLOCK_WATCH_S = 0.25  # how often the scoring samples the daemon's clock error
 
 
 @dataclass(frozen=True)
@@ -345,13 +352,17 @@ def make_commissioner(
             plan = commissioning_plan(rigs, setup)
             t0 = time.monotonic()
             error = ""
+            clock = ClockWatch(lambda: _daemon_clock_error_us(daemon, world))
+            watch = asyncio.create_task(clock.run())
             try:
-                steps = await _run_plan(client, plan, _progress(log), stick_targets)
+                steps = await _run_plan(client, plan, _progress(log), stick_targets, clock)
             except RunFailedError as exc:  # reported, and the experiments say "not commissioned"
                 ctl = (await client.request("status")).get("controller", {})
                 error = f"{exc} (controller {ctl.get('state')}, faults {ctl.get('fault_names')})"
                 log(f"commissioning: {error}")
                 steps = []
+            finally:
+                watch.cancel()
         return {
             "board_s_mm": setup.s_mm,
             "duration_s": time.monotonic() - t0,
@@ -361,6 +372,39 @@ def make_commissioner(
         }
 
     return session
+
+
+@dataclass
+class ClockWatch:
+    """Scoring only: the daemon's clock-sync error, sampled through the commissioning, so each
+    step's result says what the link's clock did while it ran (a latency calibration reads it
+    as latency)."""
+
+    error_us: Callable[[], float | None]
+    samples: list[float] = field(default_factory=list)
+
+    async def run(self) -> None:
+        """Sample until cancelled."""
+        while True:
+            error = self.error_us()
+            if error is not None:
+                self.samples.append(error)
+            await asyncio.sleep(CLOCK_WATCH_S)
+
+    def since(self, start: int) -> dict[str, float]:
+        """|error| over the samples from index `start` on: median and max, µs."""
+        errors = np.abs(self.samples[start:])
+        if not len(errors):
+            return {}
+        return {"median": round(float(np.median(errors)), 1), "max": round(float(errors.max()), 1)}
+
+
+def _daemon_clock_error_us(daemon: RunningDaemon, world: SimWorld) -> float | None:
+    """The daemon's clock-sync error now against the simulator's clock (None before a fit)."""
+    ctrl = daemon.daemon.controller
+    if not isinstance(ctrl, Controller) or not ctrl.session.clock.ready:
+        return None
+    return clock_error_us(ctrl.session.clock, world)
 
 
 def commissioning_plan(rigs: DemoRigs, setup: BoardSetup) -> CommissioningPlan:
@@ -432,19 +476,20 @@ def first_home_survey(nominal: RigSpec) -> dict[str, Any]:
 
 async def _run_plan(
     client: ControlClient, plan: CommissioningPlan, progress: Callable[[dict[str, Any]], None],
-    stick_targets: Callable[[bool], None],
+    stick_targets: Callable[[bool], None], clock: ClockWatch,
 ) -> list[tuple[str, dict[str, Any]]]:  # fmt: skip
     """The plan's steps in order, stopping after the first that fails (as `commission`)."""
     results: list[tuple[str, dict[str, Any]]] = []
     for op, args in plan.steps:
         targets = op == "survey_workpiece" and args.get("method") == "camera"
         stick_targets(targets)
-        t0 = time.monotonic()
+        t0, first = time.monotonic(), len(clock.samples)
         try:
             result = await _run_step(client, op, args, progress)
         finally:
             stick_targets(False)
-        results.append((op, {**result, "duration_s": round(time.monotonic() - t0, 1)}))
+        scores = {"clock_error_us": clock.since(first), **await _chain_counters(client)}
+        results.append((op, {**result, "duration_s": round(time.monotonic() - t0, 1), **scores}))
         if not result.get("passed", False):
             break
     return results
@@ -480,6 +525,15 @@ async def _clear_watchdog(client: ControlClient) -> None:
     if ctl.get("state") == "FAULT" and ctl.get("fault_names") == ["WATCHDOG"]:
         await client.request("clear")
         await asyncio.sleep(POLL_S)
+
+
+async def _chain_counters(client: ControlClient) -> dict[str, Any]:
+    """The daemon's chain filter after a step, cumulative: the demo injects no tooth skip
+    during commissioning, so a skip it took there was most likely false (it moved the pose
+    the calibrations read by a pitch)."""
+    link = await client.request("link_stats")
+    keys = ("skips_detected", "references_rejected", "references_used", "chain_offset_mm")
+    return {"chain": {k: link[k] for k in keys if k in link}}
 
 
 def _ready_and_homed(status: dict[str, Any]) -> bool:
@@ -530,6 +584,7 @@ def _plain(result: dict[str, Any]) -> dict[str, Any]:
     keep = (
         "passed", "reasons", "camera", "sigma", "rms_px", "views", "report", "written",
         "duration_s", "home_mm", "sigma_mm", "latency_ms", "sigma_ms", "rms_mm", "sigma_px",
-        "corner_mm", "corner_sigma_mm", "radius_change_mm", "radius_sigma_mm",
+        "corner_mm", "corner_sigma_mm", "radius_change_mm", "radius_sigma_mm", "chain",
+        "clock_error_us",
     )  # fmt: skip
     return {k: result[k] for k in keep if k in result}

@@ -42,6 +42,7 @@ from host.geometry.model import Wireframe
 from host.geometry.rangefinder import RangeScene
 from host.geometry.transforms import make_T
 from host.link import Controller, ControllerRejected, LinkError
+from host.link.clocksync import ClockSync
 from host.registration.pose_buffer import PoseSource
 from host.service.wiring import stream_rates
 from protocol import ParamId
@@ -567,14 +568,19 @@ def skip_summary(scores: list[Score], skips_mm: list[float], settled_px: float) 
 
 
 def clock_sync_error_us(bench: Bench, world: SimWorld) -> float:
-    """Host clock-sync mapping of the latest MCU tick minus when that tick truly happened."""
+    """The demo's own link: its clock-sync error now (`clock_error_us`)."""
+    return clock_error_us(bench.ctrl.session.clock, world)
+
+
+def clock_error_us(clock: ClockSync, world: SimWorld) -> float:
+    """Scoring only: a clock sync's mapping of the latest MCU tick minus when that tick truly
+    happened, in µs."""
 
     def latest(sim: Simulation) -> tuple[int, float]:
         return sim.board.mcu_us & 0xFFFF_FFFF, sim.time_s - sim.dt_s
 
     mcu_us, true_s = world.with_truth(latest)
-    estimate = bench.ctrl.session.clock.mcu_to_host_ns(mcu_us)
-    return (estimate - world.host_time_ns(true_s)) / 1000.0
+    return (clock.mcu_to_host_ns(mcu_us) - world.host_time_ns(true_s)) / 1000.0
 
 
 @dataclass

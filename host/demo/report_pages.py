@@ -155,6 +155,28 @@ def calibration_rows(results: dict[str, Any]) -> list[list[str | int | float]]:
 CALIBRATION_HEADERS = ["parameter", "host", "truth", "error", "reported σ", "|error| / σ"]
 
 
+def commissioning_line(results: dict[str, Any]) -> str:
+    """How long the commissioning took, the daemon's chain filter's skips in it (none is
+    injected: each one moved the pose it served by a pitch) and the link's clock error during
+    the latency step (which the latency absorbs); empty without a commissioning."""
+    steps = results.get("commissioning", {}).get("steps", [])
+    if not steps:
+        return ""
+    took = sum(float(step.get("duration_s", 0.0)) for step in steps)
+    line = f"Commissioning: {len(steps)} steps in {took:.0f} s"
+    counts = [s["chain"]["skips_detected"] for s in steps if "skips_detected" in s.get("chain", {})]
+    if counts:
+        # each count runs since the filter's last restart (a rig file the step wrote): a
+        # count below the one before means it restarted
+        skips = sum(b - a if b >= a else b for a, b in zip([0, *counts], counts, strict=False))
+        line += f"; tooth skips the daemon's filter took (none injected): {skips}"
+    latency = next((step for step in steps if step["op"] == "calibrate_latency"), {})
+    clock = latency.get("clock_error_us", {})
+    if clock:
+        line += f"; clock error during the latency step {clock['median']:.0f} µs (median)"
+    return line
+
+
 def summary_text(results: dict[str, Any]) -> str:
     """The lines `orbitar demo` prints."""
     lines = [mode_text(results)]
@@ -166,6 +188,9 @@ def summary_text(results: dict[str, Any]) -> str:
             f"Calibrated parameters within 3 σ of the truth: {within} of {len(cal)} "
             f"(worst {worst[0]}: {float(worst[5]):.1f} σ)"
         )
+    commissioned = commissioning_line(results)
+    if commissioned:
+        lines.append(commissioned)
     predicted = budget_points(results)
     if predicted:
         lines.append(

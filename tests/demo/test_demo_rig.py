@@ -222,6 +222,10 @@ def test_open_track_commissions_through_the_daemon_and_registers_within_its_boun
     )
     assert all(step["passed"] for step in results["commissioning"]["steps"])
     assert results["commissioning"]["passed"], results["commissioning"]
+    # no tooth skip is injected while commissioning: the daemon's filter must take none
+    assert all(
+        step["chain"].get("skips_detected") == 0 for step in results["commissioning"]["steps"]
+    )
     assert results["mode"]["tolerances"]
     assert results["mode"]["commissioned"]
     for row in results["static"].values():

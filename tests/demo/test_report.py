@@ -50,3 +50,21 @@ def test_a_nan_figure_comes_with_the_reason() -> None:
     assert note is not None
     assert "static 0 mm (12 frames), moving, drift" in note
     assert "-42.50 ms" in note
+
+
+def test_the_commissioning_line_counts_skips_across_the_filters_restarts() -> None:
+    from host.demo.report_pages import commissioning_line
+
+    assert commissioning_line({}) == ""
+    steps = [
+        {"op": "survey_home", "duration_s": 2.0, "chain": {"skips_detected": 0}},
+        {"op": "calibrate_intrinsics", "duration_s": 20.0, "chain": {"skips_detected": 2}},
+        {"op": "calibrate_head", "duration_s": 1.0, "chain": {"skips_detected": 0}},  # restarted
+        {"op": "calibrate_latency", "duration_s": 19.0, "chain": {"skips_detected": 1},
+         "clock_error_us": {"median": 265.4, "max": 300.0}},
+        {"op": "calibrate_check", "duration_s": 12.0, "chain": {}},  # no filter
+    ]  # fmt: skip
+    line = commissioning_line({"commissioning": {"steps": steps}})
+    assert line.startswith("Commissioning: 5 steps in 54 s")
+    assert "(none injected): 3" in line
+    assert "latency step 265 µs" in line
