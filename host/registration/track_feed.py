@@ -38,6 +38,17 @@ HEAD_STILL_RAD = 2e-3
 # left unplaced; at most PENDING_RANGES wait at once (the oldest is then dropped, unplaced).
 HEAD_WAIT_NS = 500_000_000
 PENDING_RANGES = 256
+# While the trolley drives a reading cannot wait: a frame waits for the reading after its
+# exposure (a tooth skip shows in it), and over XBee the head's next sample comes up to 100 ms
+# after the reading's batch. There the head is usually held (a drive looks ahead), so a reading
+# the encoder reaches past is decided at once when the head held still over its last samples
+# (HEAD_HELD_NS up to the newest, that one at most HEAD_CARRY_NS before the reading). A slew
+# begun after the newest head sample is missed then; at rest, where the commissioning's slews
+# happen, readings always wait. Moving: over MOVING_MM in the 50 ms before the reading.
+HEAD_HELD_NS = 200_000_000
+HEAD_CARRY_NS = 150_000_000
+MOVING_NS = 50_000_000
+MOVING_MM = 1.0
 
 
 @dataclasses.dataclass
@@ -104,6 +115,8 @@ class PoseFeed:
             self._raw.clear()
         self._raw.push(t_host_ns, [s_mm])
         self.encoder.push(t_host_ns, [self.s_mm], after_reset=reset)
+        if self._pending:
+            self._decide_ranges()
 
     def raw_at(self, t_host_ns: int) -> float | None:
         """Track arc length at a time before the chain filter's corrections (home + controller
@@ -153,28 +166,54 @@ class PoseFeed:
         self._decide_ranges()
 
     def _decide_ranges(self) -> None:
-        """Use or refuse, in order, the readings the head's samples now reach past."""
+        """Use or refuse, in order, the readings the head's samples now reach past (or, while
+        the trolley drives with the head held, the encoder's)."""
         head_ns, enc_ns = self.head.newest_ns(), self.encoder.newest_ns()
+        held = head_ns is not None and self._head_held(head_ns)
         while self._pending:
             t_ns, distance_mm, quality = self._pending[0]
             reached = head_ns is not None and head_ns >= t_ns + HEAD_STILL_NS
+            driving = (
+                held
+                and head_ns is not None
+                and t_ns - head_ns <= HEAD_CARRY_NS
+                and enc_ns is not None
+                and enc_ns >= t_ns
+                and self._driving(t_ns)
+            )
             given_up = enc_ns is not None and enc_ns > t_ns + HEAD_WAIT_NS
-            if not (reached or given_up):
+            if not (reached or driving or given_up):
                 return
             self._pending.popleft()
             self.last_range_ns = t_ns
-            if reached:
+            if reached or driving:
                 self._range_fix(t_ns, distance_mm, quality)
             else:
                 self.ranges_unplaced += 1
 
+    def _head_held(self, newest_ns: int) -> bool:
+        """Whether the head's samples show it still over HEAD_HELD_NS up to the newest."""
+        return self._turn(newest_ns - HEAD_HELD_NS, newest_ns) < HEAD_STILL_RAD
+
+    def _driving(self, t_ns: int) -> bool:
+        """Whether the controller's count moved over MOVING_MM in the MOVING_NS before t."""
+        a, b = self._raw.lookup(t_ns - MOVING_NS), self._raw.lookup(t_ns)
+        return (
+            a.value is not None and b.value is not None and abs(b.value[0] - a.value[0]) > MOVING_MM
+        )
+
     def _head_still(self, t_ns: int) -> bool:
         """Whether the head turned less than HEAD_STILL_RAD within HEAD_STILL_NS of t."""
-        before, after = (self.head.lookup(t_ns + d) for d in (-HEAD_STILL_NS, HEAD_STILL_NS))
+        return self._turn(t_ns - HEAD_STILL_NS, t_ns + HEAD_STILL_NS) < HEAD_STILL_RAD
+
+    def _turn(self, a_ns: int, b_ns: int) -> float:
+        """The head's largest angle change between two instants; 0 without a sample at a (the
+        head's own lookup at the reading decides then)."""
+        before, after = self.head.lookup(a_ns), self.head.lookup(b_ns)
         if before.value is None or after.value is None:
-            return True  # no sample before: the head's own lookup at t decides
+            return 0.0
         turn = np.remainder(after.value - before.value + math.pi, 2.0 * math.pi) - math.pi
-        return float(np.max(np.abs(turn))) < HEAD_STILL_RAD
+        return float(np.max(np.abs(turn)))
 
     def _range_fix(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
         """One reading the head's samples reach past: a fix when it can be placed."""

@@ -66,6 +66,24 @@ def test_while_readings_flow_a_frame_waits_for_a_reading_after_it_too() -> None:
     assert feed.covers(exposure)
 
 
+def test_while_the_trolley_drives_with_the_head_held_a_reading_need_not_wait_for_the_head() -> None:
+    """Over XBee the head's next sample (10 Hz) comes long after the reading's batch: a frame
+    would wait for it. Driving, with the head still over its last samples, the encoder's
+    samples past the reading decide it; at rest it waits (the previous test)."""
+    feed = _feed(ranger=True)
+    for k in range(31):  # 300 ms, head samples every 100 ms, driving at 200 mm/s
+        feed.on_encoder(T0_NS + 10 * k * MS, 2.0 * k, 200.0, HOMED)
+        if k % 10 == 0:
+            feed.on_head(T0_NS + 10 * k * MS, *AHEAD)
+    reading_ns = T0_NS + 305 * MS
+    feed.on_range(reading_ns, _reading(HOME_S_MM + 61.0), 200)
+    assert not feed.covers(reading_ns)  # the encoder has not reached past it yet
+    feed.on_encoder(T0_NS + 310 * MS, 62.0, 200.0, HOMED)
+    assert feed.covers(reading_ns)  # decided, 85 ms before the head's next sample
+    assert feed.ranger is not None
+    assert feed.ranger.stats.fixes == 1
+
+
 def test_a_rangefinder_that_went_quiet_is_not_waited_for() -> None:
     feed = _feed(ranger=True)
     feed.on_range(T0_NS, _reading(HOME_S_MM), 200)
