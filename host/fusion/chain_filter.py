@@ -96,6 +96,11 @@ class ChainFilter:
         self.p[2:, 2:] = bias
 
     @property
+    def pooling(self) -> bool:
+        """Whether the last gated-out references are being pooled as the evidence of a skip."""
+        return self._pending is not None
+
+    @property
     def biases(self) -> int:
         """How many bias parameters the filter carries."""
         return len(self.x) - 2

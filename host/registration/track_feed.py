@@ -92,6 +92,8 @@ class PoseFeed:
     _raw: SampleBuffer = dataclasses.field(
         default_factory=lambda: SampleBuffer(1, RAW_CAPACITY, RAW_HORIZON_NS)
     )
+    _agreed_ns: int | None = None  # stamp of the newest reference the filter took
+    _skip_seen_ns: int | None = None  # first of the gated-out references pooled since
     # readings waiting for the head's samples past them: (stamp, distance, quality)
     _pending: deque[tuple[int, float, int]] = dataclasses.field(
         default_factory=lambda: deque(maxlen=PENDING_RANGES)
@@ -315,25 +317,52 @@ class PoseFeed:
         The encoder samples up to now have already been predicted through, hence no advance.
         """
         assert self.chain is not None
-        if self.chain.reference(enc_rel_mm, true_rel_mm, sigma_mm, False, gradient):
+        skips = self.chain.stats.skips_detected
+        if not self.chain.reference(enc_rel_mm, true_rel_mm, sigma_mm, False, gradient):
+            # a gated-out reference the filter pools towards a skip: the skip came before it
+            self._skip_seen_ns = (self._skip_seen_ns or t_ns) if self.chain.pooling else None
+            return
+        if self.chain.stats.skips_detected != skips and self._agreed_ns is not None:
+            self._correct_since(self._skip_seen_ns or t_ns, ramp_from_ns=self._agreed_ns)
+        else:
             self._correct_since(t_ns)
+        self._agreed_ns, self._skip_seen_ns = t_ns, None
 
-    def _correct_since(self, t_ns: int) -> None:
-        """Re-correct the buffered samples from t_ns on with the filter as it now stands."""
+    def _correct_since(self, t_ns: int, ramp_from_ns: int | None = None) -> None:
+        """Re-correct the buffered samples from t_ns on with the filter as it now stands.
+
+        After a tooth skip, `ramp_from_ns` is the last reference that agreed with no skip: the
+        skip happened at an instant between it and t_ns that no sensor saw. A sample there
+        gets the correction times the chance that the skip came before it, (t - from) / (t_ns
+        - from), the estimate with the least expected error for a frame exposed in between;
+        with the whole correction from t_ns on such a frame carried the pitch whenever the skip
+        came first (over XBee, with a reading every 20 ms, about one run in two).
+        """
         chain = self.chain
         assert chain is not None
         t_raw, v_raw = self._raw.window()
+        t_old, v_old = self.encoder.window()  # as corrected before this reference
+        start = t_ns if ramp_from_ns is None else min(ramp_from_ns, t_ns)
+        span = max(t_ns - start, 1)
 
         def corrected(times: Int64Array) -> FloatArray:
-            raw = np.interp(times.astype(np.float64), t_raw.astype(np.float64), v_raw[:, 0])
-            return (self.home_s_mm + chain.correct(raw))[:, None]
+            at = times.astype(np.float64)
+            new = self.home_s_mm + chain.correct(
+                np.interp(at, t_raw.astype(np.float64), v_raw[:, 0])
+            )
+            if start == t_ns:
+                return new[:, None]
+            old = np.interp(at, t_old.astype(np.float64), v_old[:, 0])
+            share = np.clip((at - start) / span, 0.0, 1.0)
+            return (old + share * (new - old))[:, None]
 
         if len(t_raw):  # older samples than the raw ones kept cannot be recomputed
-            self.encoder.revise(max(t_ns, int(t_raw[0])), corrected)
+            self.encoder.revise(max(start, int(t_raw[0])), corrected)
             self.s_mm = self.home_s_mm + chain.estimate(float(v_raw[-1, 0]))[0]
 
     def _restart_filter(self) -> None:
         """Forget what the chain filter learned (same configuration)."""
+        self._agreed_ns = self._skip_seen_ns = None
         if self.chain is not None:
             self.chain = ChainFilter(self.chain.config)
 

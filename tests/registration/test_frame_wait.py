@@ -10,6 +10,7 @@ import pytest
 
 from host.config import loads_config
 from host.config_fields import ConfigError
+from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.fusion.range_fix import RangeFixer
 from host.registration.pose_buffer import AngleBuffer, SampleBuffer
 from host.registration.track_feed import HEAD_STILL_NS, RANGE_FLOWING_NS, PoseFeed
@@ -187,3 +188,30 @@ def test_a_frame_that_waits_for_the_reading_after_a_skip_shows_it_put_right() ->
     before = [e for t, e in waited.items() if SKIP_NS - 300 * MS <= t < SKIP_NS]  # settled
     assert before
     assert all(abs(e) < 0.5 for e in before)
+
+
+def test_after_a_skip_the_samples_since_the_last_agreeing_reference_get_its_likely_share() -> None:
+    """The skip came between a mark that agreed (200 ms) and the next, which showed it (574.6
+    ms): a sample in between gets the pitch times the chance the skip came before it, so a
+    frame exposed there is off by less on average than with the pitch from the second mark on
+    (all of it whenever the skip came first), and a sample before the first gets none."""
+    chain = ChainFilter(ChainFilterConfig(scale_sigma0=1e-4))  # a chain known to 0.01 %
+    marks = (1100.0, 1300.0)
+    feed = PoseFeed(SampleBuffer(1, 512), AngleBuffer(2, 512), HOME_S_MM, marks, chain=chain)
+    for k in range(121):  # 500 mm/s, samples every 5 ms; the chain jumps a tooth at 210 ms
+        feed.on_encoder(k * 5 * MS, 2.5 * k, 500.0, HOMED)
+        if k == 40:
+            feed.on_mark(200 * MS, 100.0)  # at 1100 mm, where the encoder says: no skip yet
+        if k == 116:
+            feed.on_mark(574_600_000, 287.3)  # at 1300 mm: 12.7 mm further than it reads
+    assert feed.chain is not None
+    assert feed.chain.stats.skips_detected == 1
+
+    def correction(t_ms: int) -> float:
+        value = feed.encoder.lookup(t_ms * MS).value
+        assert value is not None
+        return float(value[0]) - (HOME_S_MM + 0.5 * t_ms)
+
+    assert correction(195) == pytest.approx(0.0, abs=0.05)
+    assert correction(500) == pytest.approx(300 / 374.6 * PITCH_MM, abs=0.1)
+    assert correction(580) == pytest.approx(PITCH_MM, abs=0.05)
