@@ -133,12 +133,15 @@ class PoseFeed:
     def covered_until(self) -> int | None:
         """The latest instant the samples in cover: the newest encoder sample, or, while
         rangefinder readings flow, the newest reading decided if it is older (a tooth skip
-        before it shows in it); None without encoder samples. The head is waited for only
-        through the readings (each waits for the head's samples past it): its samples are
-        sparse on a slow link (10 Hz over XBee), and it is steady or slow where the trolley
-        is fast."""
+        before it shows in it; at rest, the newest reading in); None without encoder samples.
+        The head is waited for only through the readings (each waits for the head's samples
+        past it while the head may turn): its samples are sparse on a slow link (10 Hz over
+        XBee), and it is steady or slow where the trolley is fast."""
         newest = self.encoder.newest_ns()
         last = self.last_range_ns
+        if self._pending and not self._driving(self._pending[-1][0]):
+            # at rest a frame's pose does not hang on readings waiting for the head's samples
+            last = self._pending[-1][0]
         if newest is None or self.ranger is None or last is None:
             return newest
         return min(newest, last) if newest - last < RANGE_FLOWING_NS else newest
