@@ -377,8 +377,9 @@ def make_commissioner(
 @dataclass
 class ClockWatch:
     """Scoring only: the daemon's clock-sync error, sampled through the commissioning, so each
-    step's result says what the link's clock did while it ran (a latency calibration reads it
-    as latency)."""
+    step's result says what the link's clock did while it ran. Measured against the runner's
+    schedule (`SimWorld.host_time_ns`), as the drift experiment's figure is: a simulator
+    running behind it shows as error too."""
 
     error_us: Callable[[], float | None]
     samples: list[float] = field(default_factory=list)

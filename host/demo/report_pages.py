@@ -156,9 +156,8 @@ CALIBRATION_HEADERS = ["parameter", "host", "truth", "error", "reported σ", "|e
 
 
 def commissioning_line(results: dict[str, Any]) -> str:
-    """How long the commissioning took, the daemon's chain filter's skips in it (none is
-    injected: each one moved the pose it served by a pitch) and the link's clock error during
-    the latency step (which the latency absorbs); empty without a commissioning."""
+    """How long the commissioning took and the daemon's chain filter's skips in it (none is
+    injected: each one moved the pose it served by a pitch); empty without a commissioning."""
     steps = results.get("commissioning", {}).get("steps", [])
     if not steps:
         return ""
@@ -170,10 +169,6 @@ def commissioning_line(results: dict[str, Any]) -> str:
         # count below the one before means it restarted
         skips = sum(b - a if b >= a else b for a, b in zip([0, *counts], counts, strict=False))
         line += f"; tooth skips the daemon's filter took (none injected): {skips}"
-    latency = next((step for step in steps if step["op"] == "calibrate_latency"), {})
-    clock = latency.get("clock_error_us", {})
-    if clock:
-        line += f"; clock error during the latency step {clock['median']:.0f} µs (median)"
     return line
 
 
