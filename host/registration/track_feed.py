@@ -323,10 +323,12 @@ class PoseFeed:
         skips = self.chain.stats.skips_detected
         if not self.chain.reference(enc_rel_mm, true_rel_mm, sigma_mm, False, gradient):
             # a gated-out reference the filter pools towards a skip: the skip came before it
-            self._skip_seen_ns = (self._skip_seen_ns or t_ns) if self.chain.pooling else None
+            first = t_ns if self._skip_seen_ns is None else self._skip_seen_ns
+            self._skip_seen_ns = first if self.chain.pooling else None
             return
         if self.chain.stats.skips_detected != skips and self._agreed_ns is not None:
-            self._correct_since(self._skip_seen_ns or t_ns, ramp_from_ns=self._agreed_ns)
+            seen = t_ns if self._skip_seen_ns is None else self._skip_seen_ns
+            self._correct_since(seen, ramp_from_ns=self._agreed_ns)
         else:
             self._correct_since(t_ns)
         self._agreed_ns, self._skip_seen_ns = t_ns, None
@@ -344,9 +346,10 @@ class PoseFeed:
         chain = self.chain
         assert chain is not None
         t_raw, v_raw = self._raw.window()
-        t_old, v_old = self.encoder.window()  # as corrected before this reference
         start = t_ns if ramp_from_ns is None else min(ramp_from_ns, t_ns)
         span = max(t_ns - start, 1)
+        # as corrected before this reference (copied only for a ramp: references come often)
+        t_old, v_old = self.encoder.window() if start != t_ns else (t_raw, v_raw)
 
         def corrected(times: Int64Array) -> FloatArray:
             at = times.astype(np.float64)
