@@ -208,6 +208,7 @@ def test_the_board_is_placed_for_the_rigs_lens_clear_of_its_workpiece(
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # about 2 minutes each on an idle machine: past the default 120 s
 @pytest.mark.parametrize("path", [pytest.param(GANTRY, id="open-gantry"),
                                   pytest.param(LOOP, id="stage-loop")])  # fmt: skip
 def test_open_track_commissions_through_the_daemon_and_registers_within_its_bounds(
