@@ -580,7 +580,7 @@ def clock_error_us(clock: ClockSync, world: SimWorld) -> float:
         return sim.board.mcu_us & 0xFFFF_FFFF, sim.time_s - sim.dt_s
 
     mcu_us, true_s = world.with_truth(latest)
-    return (clock.mcu_to_host_ns(mcu_us) - world.host_time_ns(true_s)) / 1000.0
+    return (clock.peek_host_ns(mcu_us) - world.host_time_ns(true_s)) / 1000.0
 
 
 @dataclass

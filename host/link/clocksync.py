@@ -131,6 +131,11 @@ class ClockSync:
         """Host monotonic ns at which the controller clock read `mcu_ticks_32`."""
         return self.ext_to_host_ns(self.extend(mcu_ticks_32))
 
+    def peek_host_ns(self, mcu_ticks_32: int) -> int:
+        """`mcu_to_host_ns` without moving the wrap extension's reference: for a query from
+        outside the link (a score), which must leave the estimator as it was."""
+        return self.ext_to_host_ns(self._extend_query(mcu_ticks_32))
+
     def ext_to_host_ns(self, mcu_ticks_64: int) -> int:
         """Host monotonic ns of an already extended controller time."""
         fit = self._require_fit()

@@ -218,3 +218,15 @@ def test_known_base_asymmetry_is_corrected_by_outbound_fraction() -> None:
         t += PROBE_PERIOD_NS
     assert worst_error_ns(naive, link, t, rng) > 800_000
     assert worst_error_ns(told, link, t, rng) < TARGET_ERROR_NS
+
+
+def test_a_peek_maps_as_the_link_does_and_leaves_the_extension_alone() -> None:
+    rng = random.Random(7)
+    link = SimLink(rng, offset_us=WRAP_US - 20_000_000, loss=0.0)  # wraps 20 s in
+    sync = ClockSync()
+    t = run_probes(sync, link, 0, 60)
+    ahead = (link.mcu_at(t) + 1_000_000) % WRAP_US  # a second past the newest stamp
+    before = sync._last_ext
+    assert sync.peek_host_ns(ahead) == sync.ext_to_host_ns(sync._extend_query(ahead))
+    assert sync._last_ext == before  # a score must not move the link's own reference
+    assert sync.mcu_to_host_ns(ahead) == sync.peek_host_ns(ahead)
