@@ -84,7 +84,9 @@ class PoseFeed:
     marks_seen: int = 0  # REF_MARK events received
     marks_unhomed: int = 0  # of those, ignored: the controller's zero was not referenced yet
     ranges_seen: int = 0  # RANGE samples received
-    ranges_unplaced: int = 0  # of those, not used: unhomed, or no encoder/head sample around
+    # of those, not used: unhomed, no encoder/head sample around, or the head's samples never
+    # reached past it (HEAD_WAIT_NS, a full queue, a new zero)
+    ranges_unplaced: int = 0
     ranges_head_moving: int = 0  # of those, not used: the head turned around the reading
     homed: bool = False  # Inputs.HOMED of the latest encoder sample
     zero_resets: int = 0  # HOMED flag changes seen: the buffer is never bridged across them
@@ -348,17 +350,18 @@ class PoseFeed:
         t_raw, v_raw = self._raw.window()
         start = t_ns if ramp_from_ns is None else min(ramp_from_ns, t_ns)
         span = max(t_ns - start, 1)
-        # as corrected before this reference (copied only for a ramp: references come often)
-        t_old, v_old = self.encoder.window() if start != t_ns else (t_raw, v_raw)
+        # the samples as corrected before this reference, for a ramp only (references come
+        # often); read here, since `revise` calls `corrected` under the buffer's lock
+        before = self.encoder.window() if start != t_ns else None
 
         def corrected(times: Int64Array) -> FloatArray:
             at = times.astype(np.float64)
             new = self.home_s_mm + chain.correct(
                 np.interp(at, t_raw.astype(np.float64), v_raw[:, 0])
             )
-            if start == t_ns:
+            if before is None:
                 return new[:, None]
-            old = np.interp(at, t_old.astype(np.float64), v_old[:, 0])
+            old = np.interp(at, before[0].astype(np.float64), before[1][:, 0])
             share = np.clip((at - start) / span, 0.0, 1.0)
             return (old + share * (new - old))[:, None]
 
