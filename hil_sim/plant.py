@@ -11,8 +11,10 @@ elongation nor tooth skips, which is the drift the paper's registration suffers 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import math
 import random
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -83,6 +85,9 @@ class Plant:
         self._mark_slot = bisect.bisect(self.marks, self.s_mm)
         self.mark_events: list[MarkEvent] = []
         self.on_mark: Callable[[MarkEvent], None] | None = None
+        # (time, s, pan, tilt) after each tick, kept once `keep_history` is called: a camera
+        # exposes on its own clock, between the ticks, and `truth_at` looks its pose up there
+        self._history: deque[tuple[float, float, float, float]] | None = None
 
     # ---- the hot path ---------------------------------------------------------------------
 
@@ -117,6 +122,8 @@ class Plant:
         self._update_track()
         if self._head_moving:
             self._slew_head(dt_s)
+        if self._history is not None:
+            self._history.append((self.time_s, self.s_mm, self.pan, self.tilt))
 
     def _update_track(self) -> None:
         """Chain and trolley position, encoder count and index edge, reference marks."""
@@ -213,6 +220,32 @@ class Plant:
             self.pan,
             self.tilt,
         )
+
+    @property
+    def history_ticks(self) -> int:
+        """How many ticks of pose history are kept (0: none)."""
+        return 0 if self._history is None else self._history.maxlen or 0
+
+    def keep_history(self, ticks: int) -> None:
+        """From now on keep the trolley's and the head's pose over the last `ticks` ticks."""
+        self._history = deque(self._history or (), maxlen=ticks)
+
+    def truth_at(self, time_s: float) -> Truth | None:
+        """Ground truth at a recent instant between two ticks, its pose interpolated (the
+        sprocket's state, skips and stretch as now); None outside the kept history."""
+        hist = self._history
+        if not hist or not hist[0][0] <= time_s <= hist[-1][0]:
+            return None
+        i = bisect.bisect_left(hist, (time_s,))
+        t1, s1, pan1, tilt1 = hist[i]
+        t0, s0, pan0, tilt0 = hist[i - 1] if i > 0 else hist[i]
+        w = (time_s - t0) / (t1 - t0) if t1 > t0 else 1.0
+        s_mm = s0 + (s1 - s0) * w
+        wrapped = s_mm % self.sc.track.length_mm if self.sc.track.closed else s_mm
+        return dataclasses.replace(
+            self.truth(), time_s=time_s, s_mm=s_mm, s_wrapped_mm=wrapped,
+            pan_rad=pan0 + (pan1 - pan0) * w, tilt_rad=tilt0 + (tilt1 - tilt0) * w,
+        )  # fmt: skip
 
     # ---- internals ------------------------------------------------------------------------
 

@@ -83,6 +83,10 @@ class Simulation:
         """The plant's ground truth now."""
         return self.plant.truth()
 
+    def truth_at(self, time_s: float) -> Truth | None:
+        """The plant's ground truth at a recent instant (`Plant.truth_at`)."""
+        return self.plant.truth_at(time_s)
+
     def trolley_pose(self) -> FloatArray:
         """True T_w_t of the trolley now, on the scenario's track (host.geometry.track)."""
         if self._track is None:

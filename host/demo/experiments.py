@@ -458,6 +458,7 @@ async def drift_experiment(
     fused_scores: list[Score] = []
     world_scores: list[Score] = []  # the fused pose against the world frame (probe on the axis)
     chain_scores: list[Score] = []  # the track error alone, in the host's own rig (scoring)
+    along_mm: list[float] = []  # fused arc length less the true one in the host's zero (signed)
     home_offset = bench.feed.home_s_mm - (bench.home_truth_mm or bench.feed.home_s_mm)
 
     centroid = bench.model.vertices.mean(axis=0)
@@ -476,6 +477,7 @@ async def drift_experiment(
             chain_scores.append(
                 chain_errors((fused,), truth, (bench.rig, bench.camera), home_offset, target)[0]
             )
+            along_mm.append(fused.s_mm - truth.s_mm - home_offset)
 
     skips = sorted(start_enc + f * plan.loop_length_mm for f in plan.skips_at_fraction)
     bench.collector.sink = take
@@ -527,6 +529,7 @@ async def drift_experiment(
             "s_mm": [sc.s_true_mm for sc in raw_scores],
             "encoder_only_px": [sc.error_px for sc in raw_scores],
             "fused_px": [sc.error_px for sc in fused_scores],
+            "fused_along_mm": along_mm,
         },
     }
 

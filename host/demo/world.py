@@ -8,6 +8,7 @@ module only inside `Frame.truth`, for scoring.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 import uuid
@@ -39,6 +40,10 @@ SERIAL_BAUD = 115200
 # business: the exposure (a triggered camera, and the demo without tolerances) or the delivery.
 CAMERA_DELIVERY_S = 0.020
 EXPOSURE_STAMPS = FrameClock(triggered=True)
+# The camera exposes on its own steady clock, between the plant's 1 ms ticks: it reads the pose
+# at its exposure from the plant's recent history, kept this long, once a tick past it has run.
+HISTORY_S = 0.5
+HISTORY_MARGIN_S = 0.0015
 
 
 class _Emulator(Protocol):
@@ -124,6 +129,18 @@ class SimWorld:
         """Host monotonic time at which the plant was at true time `true_s` (real-time pacing)."""
         return self.runner.wall_ns_at(true_s)
 
+    def true_s_at(self, wall_ns: int) -> float:
+        """Plant time due at a host monotonic time (the inverse of `host_time_ns`)."""
+        return self.runner.true_s_at(wall_ns)
+
+    def keep_history(self, seconds: float) -> None:
+        """Keep the plant's recent pose history (`Plant.truth_at`) over at least `seconds`."""
+        ticks = round(seconds / self.sim.dt_s)
+        with self.runner.lock:
+            current = self.sim.plant.history_ticks
+            if ticks > current:
+                self.sim.plant.keep_history(ticks)
+
     def with_truth(self, fn: Callable[[Simulation], Any]) -> Any:
         """Run fn on the simulation under the runner's lock (faults, truth)."""
         with self.runner.lock:
@@ -165,22 +182,26 @@ class SimCameraSource:
         self._cam = SyntheticCamera(camera, seed=seed)
         self._blank = np.zeros((2, 2, 3), np.uint8)
         self._index = 0
-        self._next = time.monotonic()
+        self._exposure_s: float | None = None  # plant time of the next exposure
         self._closed = threading.Event()
+        world.keep_history(HISTORY_S)
 
     def read(self) -> Frame | None:
-        """Wait for the next frame time, then expose and render."""
-        self._next += self.period_s
-        delay = self._next - time.monotonic()
-        if delay < -self.period_s:  # fell behind (slow rendering): a camera skips, never bursts
-            self._next -= delay
-            delay = 0.0
-        if delay > 0 and self._closed.wait(delay):
+        """Wait for the next exposure of the camera's clock, then render and deliver it."""
+        period = self.period_s
+        due_s = self.world.true_s_at(time.monotonic_ns())
+        if self._exposure_s is None:
+            self._exposure_s = due_s + period
+        elif due_s - self._exposure_s > period:  # fell behind: the sensor ran on, frames lost
+            self._exposure_s += math.ceil((due_s - self._exposure_s) / period) * period
+        exposure_s = self._exposure_s
+        self._exposure_s += period
+        # The plant's state at the exposure is in its history once the tick after it has run.
+        ready_ns = self.world.host_time_ns(exposure_s + HISTORY_MARGIN_S)
+        wait_s = (ready_ns - time.monotonic_ns()) / 1e9
+        if (wait_s > 0 and self._closed.wait(wait_s)) or self._closed.is_set():
             return None
-        if self._closed.is_set():
-            return None
-        truth = self.world.with_truth(lambda sim: sim.truth())
-        deliver_at = time.monotonic() + self.delivery_s
+        truth = self.world.with_truth(lambda sim: sim.truth_at(exposure_s) or sim.truth())
         exposure_ns = self.world.host_time_ns(truth.time_s)
         stamp = self.clock.stamp_ns(exposure_ns)
         T_w_c = self.rig.T_w_c(truth.s_wrapped_mm, truth.pan_rad, truth.tilt_rad)
@@ -190,8 +211,10 @@ class SimCameraSource:
             image = self._cam.render_scene(
                 T_w_c, self.model, T_w_p, board=self.board, targets_p=self.targets_p
             ).image
-        hold = deliver_at - time.monotonic()
-        if hold > 0 and self._closed.wait(hold):
+        # Delivered when its stamp says (a triggered camera's frame after its readout).
+        deliver_ns = max(stamp, exposure_ns + round(self.delivery_s * 1e9))
+        hold_s = (deliver_ns - time.monotonic_ns()) / 1e9
+        if hold_s > 0 and self._closed.wait(hold_s):
             return None
         self._index += 1
         scene = SceneTruth(T_w_c, T_w_p, truth.s_mm, truth.pan_rad, truth.tilt_rad)

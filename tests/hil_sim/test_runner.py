@@ -298,3 +298,31 @@ def test_bytes_arriving_after_a_late_tick_was_due_wait_for_the_next_tick() -> No
     assert len(replies) == 1
     held_us = replies[0].mcu_time_us - replies[0].rx_time_us
     assert held_us == pytest.approx(0.8 * TICK_US, abs=2)  # stamped as it came, read at tick 2
+
+
+def test_the_plant_tells_its_pose_between_ticks_from_its_history() -> None:
+    sim = Simulation(Scenario(seed=3))
+    c = FrameClient(sim)
+    sim.plant.keep_history(200)
+    for msg in (HeadSet(400_000, -200_000), Jog(300_000, 1_000_000)):
+        sim.send(encode_frame(msg, c.seq, Flag.ACK_REQUESTED))
+        c.seq += 1
+        sim.step(5)
+    before = []
+    for _ in range(300):  # moving and slewing: the pose changes every tick
+        before.append(sim.truth())
+        sim.step(1)
+    a, b = before[-3], before[-2]
+    assert b.s_mm != a.s_mm
+    assert b.pan_rad != a.pan_rad
+    mid = sim.truth_at((a.time_s + b.time_s) / 2)
+    assert mid is not None
+    assert mid.s_mm == pytest.approx((a.s_mm + b.s_mm) / 2, abs=1e-9)
+    assert mid.pan_rad == pytest.approx((a.pan_rad + b.pan_rad) / 2, abs=1e-12)
+    assert mid.tilt_rad == pytest.approx((a.tilt_rad + b.tilt_rad) / 2, abs=1e-12)
+    exact = sim.truth_at(a.time_s)
+    assert exact is not None
+    assert exact.s_mm == a.s_mm
+    assert sim.truth_at(before[0].time_s) is None  # older than the 200 ticks kept
+    assert sim.truth_at(sim.time_s + 0.01) is None  # not yet happened
+    assert Simulation(Scenario()).truth_at(0.0) is None  # no history unless asked for
