@@ -75,12 +75,22 @@ class LinkConfig:
     )
 
 
+STAMP_MODES = ("steady", "as-delivered")
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """Where frames come from (resolution, rate and intrinsics are the rig file's)."""
 
     source: str | int = spec(
         "sim", parse=parse_source, doc='"sim", a device index, a video file or a URL'
+    )
+    stamps: str = spec(
+        "steady",
+        choices=STAMP_MODES,
+        doc="\"steady\": each frame's stamp is put on the camera's fitted frame clock (a "
+        'free-running camera\'s delivery jitter taken out, host.frames.stamps); "as-delivered": '
+        "each frame keeps the stamp it came with",
     )
 
 

@@ -141,6 +141,18 @@ def frames_text(service: Mapping[str, Any]) -> str:
         f"{fmt(service.get('fps'), 1, ' fps')}",
         f"{frames.get('dropped', 0)} dropped",
         f"latency p50 {fmt(frames.get('latency_ms_p50'), 0, ' ms')}",
+        stamps_text(source.get("stamps")),
+    )
+
+
+def stamps_text(stamps: Mapping[str, Any] | None) -> str:
+    """How the frames are stamped: as delivered, or on the camera's fitted clock."""
+    if not stamps:
+        return "stamps as delivered"
+    return (
+        f"stamps on the camera's clock ({stamps.get('smoothed', 0)} of "
+        f"{stamps.get('frames', 0)}, ±{fmt(stamps.get('residual_us'), 0, ' µs')}, "
+        f"{stamps.get('restarts', 0)} restarts)"
     )
 
 

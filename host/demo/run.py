@@ -47,6 +47,7 @@ from host.demo.scoring import true_zero_mm
 from host.demo.world import SimCameraSource, SimWorld
 from host.experiments.budget import inputs_from_rig, overlay_sigma
 from host.frames.loop import FrameLoop
+from host.frames.stamps import SteadyClockSource
 from host.fusion import rig_references
 from host.fusion.rig_references import chain_config
 from host.link import Controller, LinkError
@@ -218,7 +219,7 @@ async def _experiments(
         render_every=RENDER_EVERY,
     )  # fmt: skip
     loop = FrameLoop(
-        source,
+        SteadyClockSource(source),  # as the daemon's default `[camera] stamps = "steady"`
         bench.process(),
         [bench.collector],
         ready=lambda frame: feed.corrected.covers(frame.exposure_ns - bench.latency_ns),

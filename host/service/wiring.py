@@ -27,6 +27,7 @@ from host.control.api import ControllerLike, FrameLoopLike, PoseSample, PoseSink
 from host.frames.loop import FrameLoop
 from host.frames.registrar import Registrar, Registration
 from host.frames.sources import Frame, FrameSource, VideoCaptureSource
+from host.frames.stamps import SteadyClockSource
 from host.fusion import rig_references
 from host.fusion.chain_filter import ChainFilter, ChainFilterConfig
 from host.fusion.range_fix import RangeFixer
@@ -609,6 +610,8 @@ def frame_loop_factory(
         raise WiringError("the pose loop needs the link controller built by controller_factory")
     model = build_model(config)  # checked even without a camera: a bad path shows at start
     camera = camera or open_camera(config)
+    if camera is not None and config.camera.stamps == "steady":
+        camera = SteadyClockSource(camera)
     latency_ms = exposure_latency_ms(config) if camera is not None else 0.0
     poses, feed = build_pose_source(
         config, config_stream_rates(config), latency_ms, controller.chain_pitch_mm
