@@ -127,7 +127,10 @@ class ExposureClock:
         t = np.asarray([s - t0 for s in self._stamps], np.float64)
         keep = np.ones(len(n), bool)
         for _ in range(2):
-            slope, icept = np.polyfit(n[keep], t[keep], 1)
+            nk, tk = n[keep], t[keep]
+            n_mean, t_mean = nk.mean(), tk.mean()
+            slope = float(((nk - n_mean) * (tk - t_mean)).sum() / ((nk - n_mean) ** 2).sum())
+            icept = t_mean - slope * n_mean
             resid = t - (icept + slope * n)
             keep = np.abs(resid) <= OUTLIER_NS
             if keep.sum() < self.min_frames:
@@ -137,7 +140,7 @@ class ExposureClock:
         rms = float(np.sqrt(np.mean(resid[keep] ** 2)))
         self.stats.period_us = self._period_ns / 1e3
         self.stats.residual_us = rms / 1e3
-        return bool(slope >= MIN_PERIOD_NS and rms <= MAX_RESIDUAL_PERIODS * slope)
+        return slope >= MIN_PERIOD_NS and rms <= MAX_RESIDUAL_PERIODS * slope
 
     def _at(self, number: int) -> float:
         """The line's stamp at a frame number."""
