@@ -546,11 +546,15 @@ def skip_summary(scores: list[Score], skips_mm: list[float], settled_px: float) 
     A skip's window runs from the first frame past it to the first frame after that back under
     settled_px (an eighth of a pitch): the frames a user saw the overlay jump, fully or in part
     (a frame between the last uncorrected encoder sample and the first corrected one carries a
-    share of the pitch).
+    share of the pitch). It begins earlier by the frames just before the skip that are off by
+    as much: a frame exposed between the last reading that agreed and the first that showed the
+    skip is given the pitch times the chance the skip came before it, also when it did not.
     """
     windows = []
     for skip in skips_mm:
         start = next((i for i, sc in enumerate(scores) if sc.s_true_mm >= skip), len(scores))
+        while start > 0 and scores[start - 1].error_px >= settled_px:
+            start -= 1
         end = next(
             (i for i in range(start, len(scores)) if scores[i].error_px < settled_px),
             len(scores),

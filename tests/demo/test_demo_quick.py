@@ -131,3 +131,9 @@ def test_skip_summary_counts_the_frames_until_the_overlay_is_back() -> None:
     assert got["skip_travel_mm"] == [200.0, 0.0, None]  # the last never came back
     assert got["fused_px_outside_skip_windows"]["max"] == pytest.approx(0.2)
     assert got["fused_px_outside_skip_windows"]["n"] == 4
+    # a frame just before the skip given a share of its correction belongs to its window
+    errors = [0.1, 0.1, 8.5, 0.2, 0.1]
+    scores = [Score(100.0 * i, px, px) for i, px in enumerate(errors)]
+    got = skip_summary(scores, [250.0], settled_px=7.0)
+    assert got["skip_frames"] == [1]
+    assert got["fused_px_outside_skip_windows"]["max"] == pytest.approx(0.2)
