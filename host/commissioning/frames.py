@@ -12,8 +12,9 @@ import asyncio
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
-from host.frames.sources import Frame, FrameSource
+from host.frames.sources import Frame, FrameSource, describe_source
 
 POLL_S = 0.01
 
@@ -39,6 +40,10 @@ class FrameTap:
     def close(self) -> None:
         """Release the camera."""
         self.source.close()
+
+    def describe(self) -> dict[str, Any]:
+        """The camera's own description (`orbitar status` shows it)."""
+        return describe_source(self.source)
 
     def latest(self) -> Frame | None:
         """The newest frame, or None before the first."""

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Generic, TypeVar
 
-from host.frames.sources import Frame, FrameSource
+from host.frames.sources import Frame, FrameSource, describe_source
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +110,6 @@ class FrameLoop(Generic[ResultT]):
 
     def status(self) -> dict[str, Any]:
         """Counters, latency and the source's own state (a file's end, a lost device)."""
-        describe = getattr(self.source, "describe", None)
         p50, p95 = self.stats.latency_ms(0.5), self.stats.latency_ms(0.95)
         return {
             "captured": self.stats.captured,
@@ -121,11 +120,11 @@ class FrameLoop(Generic[ResultT]):
             "source_ended": self._ended,
             "latency_ms_p50": None if math.isnan(p50) else round(p50, 2),
             "latency_ms_p95": None if math.isnan(p95) else round(p95, 2),
-            "source": describe() if callable(describe) else self._plain_source(),
+            "source": {**self._plain_source(), **describe_source(self.source)},
         }
 
     def _plain_source(self) -> dict[str, Any]:
-        """What can be said of a source that does not describe itself."""
+        """What can be said of any source, whatever it says of itself."""
         state = "ended" if self._ended else "running"
         return {"source": type(self.source).__name__, "kind": "camera", "state": state}
 

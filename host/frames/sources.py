@@ -44,6 +44,12 @@ class FrameSource(Protocol):
         ...
 
 
+def describe_source(source: object) -> dict[str, Any]:
+    """What a source says of itself (its `describe()`), or nothing if it says nothing."""
+    describe = getattr(source, "describe", None)
+    return dict(describe()) if callable(describe) else {}
+
+
 class SourceState(enum.Enum):
     """Where a camera source is in its life (shown in the status)."""
 

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from host.frames.sources import Frame, FrameSource
+from host.frames.sources import Frame, FrameSource, describe_source
 
 WINDOW_FRAMES = 300  # 10 s at 30 fps: the line's σ at its newest frame is ~2σ/√300 of a stamp's
 MIN_FRAMES = 30  # frames on one line before it replaces their stamps
@@ -183,6 +183,4 @@ class SteadyClockSource:
 
     def describe(self) -> dict[str, Any]:
         """The camera's own description, and what the clock did with its stamps."""
-        describe = getattr(self.inner, "describe", None)
-        inner = describe() if callable(describe) else {"source": type(self.inner).__name__}
-        return {**inner, "stamps": {"clock": "steady", **asdict(self.clock.stats)}}
+        return {**describe_source(self.inner), "stamps": asdict(self.clock.stats)}

@@ -53,3 +53,23 @@ async def test_camera_frames_are_recorded_as_jpegs(tmp_path: Path) -> None:
         assert image.shape == (48, 64, 3)
         assert frame["exposure_ns"] > 0
         assert frame["status"] != "ok"  # no samples: never a guessed pose
+
+
+async def test_the_camera_is_stamped_on_its_own_clock_unless_told_otherwise(
+    tmp_path: Path,
+) -> None:
+    video = tmp_path / "clip.avi"
+    write_video(video)
+    for stamps, steady in (("steady", True), ("as-delivered", False)):
+        config = loads_config(f'[camera]\nsource = "{video}"\nstamps = "{stamps}"\n')
+        controller = controller_factory(config, lambda *_: None)
+        loop = frame_loop_factory(config, controller, lambda pose: None, lambda *_: None)
+        assert isinstance(loop, CameraPoseLoop)
+        await loop.run()
+        source = loop.loop.status()["source"]
+        assert source["kind"] == "file"  # the camera's own description is still there
+        if steady:
+            assert source["stamps"]["frames"] == FRAMES  # too few for a line: kept as given
+            assert source["stamps"]["smoothed"] == 0
+        else:
+            assert "stamps" not in source
