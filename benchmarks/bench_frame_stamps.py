@@ -4,8 +4,9 @@ Run: python benchmarks/bench_frame_stamps.py [--frames N] [--jitter-ms S] [--see
 (prints `metric: value` lines, ~2 s)
 
 A 30 fps sensor whose crystal is 40 ppm off the host's is stamped at delivery: 20 ms late plus
-|N(0, S)| (S = 1 ms, the demo camera's), 3 % of its frames lost, and per case a share of them
-held back by a stall of up to 30 ms (a busy USB host or driver). Each case prints, for the
+|N(0, S)| (S = 1 ms, the demo camera's: `hil_sim.camera.FrameClock`), 3 % of its frames lost,
+and per case a share of them held back by a stall of up to 30 ms (a busy USB host or driver;
+the frames behind it are handed over right after it, in order). Each case prints, for the
 stamps as delivered (`raw`) and as `host.frames.stamps.ExposureClock` places them (`steady`),
 the stamp's error about its mean delay (σ and the largest), which at the trolley's 0.5 m/s is
 0.5 mm per ms along the track, and the clock's cost per frame. The mean delay both keep is the
@@ -19,6 +20,7 @@ import time
 
 import numpy as np
 
+from hil_sim.camera import FrameClock
 from host.frames.stamps import MIN_FRAMES, ExposureClock
 
 PERIOD_NS = 1e9 / 30 * (1 + 40e-6)
@@ -31,15 +33,19 @@ SPEED_MM_PER_MS = 0.5  # the drift loop's 500 mm/s
 def stamps(n: int, jitter_ns: float, stall_share: float, seed: int) -> tuple[np.ndarray, list[int]]:
     """Exposures and their delivery stamps."""
     rng = np.random.default_rng(seed)
-    exposures, out, k = [], [], 0
+    delivery = FrameClock(delivery_s=DELAY_NS / 1e9, jitter_s=jitter_ns / 1e9, seed=seed)
+    exposures: list[float] = []
+    out: list[int] = []
+    k = 0
     for _ in range(n):
         k += 2 if rng.random() < DROP else 1
         e = 1e12 + k * PERIOD_NS
-        late = DELAY_NS + abs(rng.normal(0.0, jitter_ns))
+        stamp = delivery.stamp_ns(round(e))
         if rng.random() < stall_share:
-            late += STALL_NS * rng.random()
+            stamp += round(STALL_NS * rng.random())
         exposures.append(e)
-        out.append(round(e + late))
+        # the driver hands frames over in order: those behind a stall come right after it
+        out.append(max(stamp, out[-1] + 100_000) if out else stamp)
     return np.asarray(exposures), out
 
 

@@ -550,10 +550,11 @@ def skip_summary(scores: list[Score], skips_mm: list[float], settled_px: float) 
     as much: a frame exposed between the last reading that agreed and the first that showed the
     skip is given the pitch times the chance the skip came before it, also when it did not.
     """
-    windows = []
+    windows: list[tuple[int, int]] = []
     for skip in skips_mm:
         start = next((i for i, sc in enumerate(scores) if sc.s_true_mm >= skip), len(scores))
-        while start > 0 and scores[start - 1].error_px >= settled_px:
+        earliest = windows[-1][1] if windows else 0  # never into the previous skip's window
+        while start > earliest and scores[start - 1].error_px >= settled_px:
             start -= 1
         end = next(
             (i for i in range(start, len(scores)) if scores[i].error_px < settled_px),

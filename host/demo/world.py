@@ -14,7 +14,7 @@ import time
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,6 +24,7 @@ from hil_sim.links.can_node import VirtualCanNode
 from hil_sim.links.endpoint import SimPortEndpoint
 from hil_sim.links.pty_uart import PtyUart
 from hil_sim.links.xbee import CONTROLLER_ADDR64, XBeeModule
+from hil_sim.plant import Truth
 from hil_sim.runner import RealtimeRunner, Simulation
 from hil_sim.scenario import Scenario
 from host.frames.sources import Frame
@@ -44,6 +45,7 @@ EXPOSURE_STAMPS = FrameClock(triggered=True)
 # at its exposure from the plant's recent history, kept this long, once a tick past it has run.
 HISTORY_S = 0.5
 HISTORY_MARGIN_S = 0.0015
+PLANT_POLL_S = 0.0005
 
 
 class _Emulator(Protocol):
@@ -183,25 +185,18 @@ class SimCameraSource:
         self._blank = np.zeros((2, 2, 3), np.uint8)
         self._index = 0
         self._exposure_s: float | None = None  # plant time of the next exposure
+        self.late_plant = 0  # waits for a plant thread that ran behind the wall clock
         self._closed = threading.Event()
         world.keep_history(HISTORY_S)
 
     def read(self) -> Frame | None:
         """Wait for the next exposure of the camera's clock, then render and deliver it."""
-        period = self.period_s
-        due_s = self.world.true_s_at(time.monotonic_ns())
-        if self._exposure_s is None:
-            self._exposure_s = due_s + period
-        elif due_s - self._exposure_s > period:  # fell behind: the sensor ran on, frames lost
-            self._exposure_s += math.ceil((due_s - self._exposure_s) / period) * period
-        exposure_s = self._exposure_s
-        self._exposure_s += period
-        # The plant's state at the exposure is in its history once the tick after it has run.
-        ready_ns = self.world.host_time_ns(exposure_s + HISTORY_MARGIN_S)
-        wait_s = (ready_ns - time.monotonic_ns()) / 1e9
-        if (wait_s > 0 and self._closed.wait(wait_s)) or self._closed.is_set():
-            return None
-        truth = self.world.with_truth(lambda sim: sim.truth_at(exposure_s) or sim.truth())
+        truth = None
+        while truth is None:
+            exposure_s = self._next_exposure_s()
+            truth = self._truth_at(exposure_s)
+            if self._closed.is_set():
+                return None
         exposure_ns = self.world.host_time_ns(truth.time_s)
         stamp = self.clock.stamp_ns(exposure_ns)
         T_w_c = self.rig.T_w_c(truth.s_wrapped_mm, truth.pan_rad, truth.tilt_rad)
@@ -219,6 +214,39 @@ class SimCameraSource:
         self._index += 1
         scene = SceneTruth(T_w_c, T_w_p, truth.s_mm, truth.pan_rad, truth.tilt_rad)
         return Frame(self._index, image, stamp, scene)
+
+    def _next_exposure_s(self) -> float:
+        """Plant time of the next exposure on the camera's grid (the sensor runs on while the
+        frames are not read: those are lost)."""
+        period = self.period_s
+        due_s = self.world.true_s_at(time.monotonic_ns())
+        if self._exposure_s is None:
+            self._exposure_s = due_s + period
+        elif due_s - self._exposure_s > period:
+            self._exposure_s += math.ceil((due_s - self._exposure_s) / period) * period
+        exposure_s = self._exposure_s
+        self._exposure_s += period
+        return exposure_s
+
+    def _truth_at(self, exposure_s: float) -> Truth | None:
+        """The plant's state at the exposure, from its history once a tick past it has run.
+
+        A plant thread held back by the host's load runs late: wait for it, never take another
+        instant's state. None when closed, or when the exposure has left the history (this
+        thread was held back longer than it): that frame is lost.
+        """
+        ready_ns = self.world.host_time_ns(exposure_s + HISTORY_MARGIN_S)
+        while True:
+            wait_s = (ready_ns - time.monotonic_ns()) / 1e9
+            if (wait_s > 0 and self._closed.wait(wait_s)) or self._closed.is_set():
+                return None
+            truth, plant_s = self.world.with_truth(
+                lambda sim: (sim.truth_at(exposure_s), sim.time_s)
+            )
+            if truth is not None or plant_s >= exposure_s:
+                return cast("Truth | None", truth)
+            self.late_plant += 1  # not there yet: the plant's thread is behind the wall clock
+            ready_ns = time.monotonic_ns() + round(PLANT_POLL_S * 1e9)
 
     def close(self) -> None:
         """Stop delivering frames."""

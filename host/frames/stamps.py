@@ -34,7 +34,10 @@ MIN_FRAMES = 30  # frames on one line before it replaces their stamps
 AMBIGUOUS_PERIODS = 0.3  # a step this far from a whole number of periods is not the clock's
 MAX_GAP_NS = 1_000_000_000  # after a longer silence the camera may have restarted
 OUTLIER_NS = 5_000_000  # a stamp this far off the line (a stall) is not fitted
-EARLY_NS = 3_000_000  # the earliest a stamp comes before the line (its mean delay)
+EARLY_NS = 3_000_000  # the earliest a stamp comes before the line (its mean delay), at most
+SPREAD_SLACK_NS = 500_000  # beyond the fitted stamps' own spread about the line
+PROBATION_FRAMES = 3  # after a gap of frames, this many must sit on the line again
+PROBATION_LATE_NS = 2_000_000  # ... no later than the fitted spread, or this
 RECENT_FRAMES = 10  # of the last this many frames,
 OFF_LINE_FRAMES = 5  # this many off the line are not a stall: the clock changed
 MIN_PERIOD_NS = 2_000_000  # 500 fps: steps shorter than this are a driver's burst
@@ -58,6 +61,8 @@ class ExposureClock:
     """Fits a steady frame clock to delivery stamps; `place` gives a frame's stamp on it."""
 
     def __init__(self, window: int = WINDOW_FRAMES, min_frames: int = MIN_FRAMES) -> None:
+        if not 3 <= min_frames <= window:
+            raise ValueError(f"need 3 <= min_frames <= window, got {min_frames} and {window}")
         self.window = window
         self.min_frames = min_frames
         self.stats = StampStats()
@@ -66,24 +71,47 @@ class ExposureClock:
         self._period_ns = 0.0  # 0 until two frames have been seen
         # fitted: (the line's stamp at frame number n0, the period, n0)
         self._line: tuple[float, float, int] | None = None
+        self._early_ns = float(EARLY_NS)  # the most a stamp of this camera comes before the line
+        self._late_ns = float(OUTLIER_NS)  # the most it comes after, but for a stall
         self._recent_off: deque[bool] = deque(maxlen=RECENT_FRAMES)  # frames off the line
+        self._probation = 0  # frames after a gap that must sit on the line before it is used
+        self._last_out: int | None = None
 
     def place(self, stamp_ns: int) -> int:
         """The stamp of this frame on the camera's clock (or as given, until the clock is known)."""
         self.stats.frames += 1
-        if self._line is None:
-            return self._warm_up(stamp_ns)
+        out = self._warm_up(stamp_ns) if self._line is None else self._on_line(stamp_ns)
+        if self._last_out is not None and self._last_out - EARLY_NS < out < self._last_out:
+            out = self._last_out  # frames come in order: a stamp kept as given never steps back
+            # behind a placed one (a stamp that itself went back further is passed on as it is)
+        self._last_out = out
+        return out
+
+    def _on_line(self, stamp_ns: int) -> int:
+        """A frame once the line is known: its place on it, or its own stamp if it has none."""
+        assert self._line is not None
         last_number, last_stamp = self._numbers[-1], self._stamps[-1]
         if stamp_ns - last_stamp > MAX_GAP_NS:
             return self._restart(stamp_ns)
-        # A stamp is never much earlier than the line (the delay's spread below its mean is
-        # small), so the frame is the latest one the line allows: a frame late by a stall gets
-        # its own exposure, or the next one's if the stall took nearly a period (never an error
-        # larger than the stall's).
+        # A stamp comes before the line by at most the delay's spread below its mean, so the
+        # frame is the latest the line allows: a frame late by a stall gets its own exposure,
+        # or the next one's if the stall was within that spread of a whole period.
         icept, period, n0 = self._line
-        number = n0 + math.floor((stamp_ns - icept + EARLY_NS) / period)
+        number = n0 + math.floor((stamp_ns - icept + self._early_ns) / period)
+        late = stamp_ns - self._at(number)
+        if number - last_number > 2:
+            # Frames lost in a row, or the camera restarted at another phase or rate: the
+            # next frames must sit on the line before it stands for them again.
+            self._probation = PROBATION_FRAMES
+        if self._probation:
+            if number <= last_number or late > self._late_ns:
+                return self._restart(stamp_ns)
+            self._probation -= 1
+            self._numbers.append(number)
+            self._stamps.append(stamp_ns)
+            return stamp_ns
         fits = number > last_number
-        off = not fits or stamp_ns - self._at(number) > OUTLIER_NS
+        off = not fits or late > OUTLIER_NS
         self._recent_off.append(off)
         self.stats.outliers += off
         if sum(self._recent_off) >= OFF_LINE_FRAMES:  # not a stall: the clock itself changed
@@ -112,6 +140,8 @@ class ExposureClock:
             return self._restart(stamp_ns)
         self._numbers.append(self._numbers[-1] + whole)
         self._stamps.append(stamp_ns)
+        # the period over all the frames so far, not the first step's
+        self._period_ns = (stamp_ns - self._stamps[0]) / (self._numbers[-1] - self._numbers[0])
         if len(self._stamps) < self.min_frames:
             return stamp_ns
         if not self._fit():
@@ -133,11 +163,13 @@ class ExposureClock:
             icept = t_mean - slope * n_mean
             resid = t - (icept + slope * n)
             keep = np.abs(resid) <= OUTLIER_NS
-            if keep.sum() < self.min_frames:
+            if keep.sum() < max(3, len(keep) // 2):  # no line through most of them
                 keep[:] = True
         self._period_ns = float(slope)
         self._line = (float(icept) + t0, float(slope), n0)
         rms = float(np.sqrt(np.mean(resid[keep] ** 2)))
+        self._early_ns = min(float(EARLY_NS), max(-float(resid[keep].min()), 0.0) + SPREAD_SLACK_NS)
+        self._late_ns = max(float(resid[keep].max()) + SPREAD_SLACK_NS, PROBATION_LATE_NS)
         self.stats.period_us = self._period_ns / 1e3
         self.stats.residual_us = rms / 1e3
         return slope >= MIN_PERIOD_NS and rms <= MAX_RESIDUAL_PERIODS * slope
@@ -160,6 +192,8 @@ class ExposureClock:
         self._period_ns = 0.0
         self._line = None
         self._recent_off.clear()
+        self._probation = 0
+        self._early_ns, self._late_ns = float(EARLY_NS), float(OUTLIER_NS)
         return stamp_ns
 
 

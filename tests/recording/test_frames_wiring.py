@@ -6,23 +6,25 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from host.config import loads_config
+from host.frames.stamps import MIN_FRAMES
 from host.recording import RecordingReader, RecordingWriter
 from host.service.wiring import CameraPoseLoop, controller_factory, frame_loop_factory
 
 FRAMES = 6
 
 
-def write_video(path: Path) -> None:
+def write_video(path: Path, frames: int = FRAMES, fps: float = 10.0) -> None:
     """A short MJPG file whose frames differ (a bar moving right)."""
     import cv2
 
-    out = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 10.0, (64, 48))
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), fps, (64, 48))
     assert out.isOpened()
-    for i in range(FRAMES):
+    for i in range(frames):
         image = np.zeros((48, 64, 3), np.uint8)
-        image[:, 8 * i : 8 * i + 8] = 255
+        image[:, 8 * (i % 8) : 8 * (i % 8) + 8] = 255
         out.write(image)
     out.release()
 
@@ -59,7 +61,8 @@ async def test_the_camera_is_stamped_on_its_own_clock_unless_told_otherwise(
     tmp_path: Path,
 ) -> None:
     video = tmp_path / "clip.avi"
-    write_video(video)
+    frames = MIN_FRAMES + 10
+    write_video(video, frames, fps=100.0)  # played at its own rate: steady stamps, 0.4 s
     for stamps, steady in (("steady", True), ("as-delivered", False)):
         config = loads_config(f'[camera]\nsource = "{video}"\nstamps = "{stamps}"\n')
         controller = controller_factory(config, lambda *_: None)
@@ -69,7 +72,8 @@ async def test_the_camera_is_stamped_on_its_own_clock_unless_told_otherwise(
         source = loop.loop.status()["source"]
         assert source["kind"] == "file"  # the camera's own description is still there
         if steady:
-            assert source["stamps"]["frames"] == FRAMES  # too few for a line: kept as given
-            assert source["stamps"]["smoothed"] == 0
+            assert source["stamps"]["frames"] == frames
+            assert source["stamps"]["smoothed"] >= 8  # the line once 30 frames are on it
+            assert source["stamps"]["period_us"] == pytest.approx(10_000, rel=0.05)
         else:
             assert "stamps" not in source
