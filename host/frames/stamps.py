@@ -11,7 +11,9 @@ drivers smooth timestamps for the same reason.
 The fit is a least-squares line of stamp against frame number over the last WINDOW_FRAMES
 frames. A frame's number is counted in periods on the line, so a frame the camera or the driver
 dropped leaves a gap instead of shifting the line by a period, and a frame held back by a stall
-is left out of the fit but still gets its place on the line. Through the mean of the stamps the
+is left out of the fit but still gets its place on the line. After two or more frames lost in a
+row the next three must sit on the line again before it stands for them (a camera restarted
+within the second, at another rate or phase). Through the mean of the stamps the
 line keeps their mean delay, which the calibrated exposure latency takes off as before. Where
 the stamps are not those of a steady clock (frames that come in bursts, a camera restarted at
 another rate, a gap of a second), the clock starts again and passes the stamps through as given
