@@ -258,6 +258,7 @@ async def _experiments(
             "processed": loop.stats.processed,
             "dropped": loop.stats.dropped,
             "timed_out": loop.stats.timed_out,  # registered without all their samples
+            "camera_waited_for_plant": source.late_plant,  # the plant's thread ran late
             "latency_ms_median": loop.stats.latency_ms(0.5),
             "latency_ms_p99": loop.stats.latency_ms(0.99),
         }
