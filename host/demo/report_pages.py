@@ -281,6 +281,23 @@ def _drift_figure(results: dict[str, Any]) -> Any:
     return fig
 
 
+def _along_figure(results: dict[str, Any]) -> Any | None:
+    """The fused arc length's signed error along the loop: a bias or a slow wander is the
+    references' or the time alignment's (latency, clock sync), a scatter from frame to frame
+    the stamps'."""
+    tr = results["drift"]["trace"]
+    along = tr.get("fused_along_mm")
+    if not along:  # a results.json from before the trace had it
+        return None
+    fig, ax = plt.subplots(figsize=(9, 3.5))
+    ax.plot(tr["s_mm"], along, color="tab:green", lw=1.0)
+    ax.axhline(0.0, color="0.5", lw=0.8)
+    ax.set_xlabel("true track position (mm)")
+    ax.set_ylabel("fused − true arc length (mm)")
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
 def _histogram_figure(results: dict[str, Any]) -> Any:
     """Distribution of the drift errors."""
     tr = results["drift"]["trace"]
@@ -383,6 +400,8 @@ def write_report(
     )
     rep.add_text("How the drift is corrected", DRIFT_NOTE.format(**_drift_fmt(dr)))
     rep.add_figure("Overlay error against track position", _drift_figure(results))
+    if (along := _along_figure(results)) is not None:
+        rep.add_figure("Fused position along the track, signed", along)
     rep.add_figure("Error histograms", _histogram_figure(results))
     rep.add_figure("The trolley's path", _path_figure(sc))
     for title, image in snapshots:

@@ -112,6 +112,9 @@ def test_report_files_exist_and_parse(demo: tuple[dict[str, Any], Path]) -> None
     page = Path(results["report"])
     assert page.exists()
     assert page.read_text().count("data:image/png;base64,") >= 3
+    assert "Fused position along the track, signed" in page.read_text()
+    trace = results["drift"]["trace"]
+    assert len(trace["fused_along_mm"]) == len(trace["s_mm"]) > 0
     data = json.loads((out / "results.json").read_text())
     assert data["moving"]["R_percent"] == pytest.approx(results["moving"]["R_percent"])
     assert len(data["propagation"]["rows"]) == 4
