@@ -54,7 +54,9 @@ class StampStats:
     frames: int = 0
     smoothed: int = 0  # stamps replaced by the line
     restarts: int = 0  # times the stamps left the line and it began again
-    outliers: int = 0  # stamps off the line by more than OUTLIER_NS, placed on it
+    # stamps later than the line by more than OUTLIER_NS (placed on it), or with no exposure of
+    # their own on it (kept as given)
+    outliers: int = 0
     period_us: float = 0.0  # the fitted period
     residual_us: float = 0.0  # RMS of the fitted stamps about the line
 
