@@ -14,6 +14,13 @@ with the prediction by far more than their delay can explain are rejected as out
 
 No estimator can see a difference between the two legs' *minimum* delays; it shifts the mapping
 by half that difference. When a link's asymmetry is known, `outbound_fraction` corrects it.
+
+The probes fix the offset well but their slope poorly on a busy half-duplex radio, where the
+queues they meet bias each one's offset by an amount that changes with the traffic: over XBee the
+probes' slope was 10-20 ppm off for a minute at a time. Telemetry frames give the slope without
+a probe: `add_arrival` feeds each frame's newest MCU stamp and arrival time to the lower envelope
+of one-way delays (`host.link.skew`), and the fit weighs its slope against the probes' by their
+variances. Without telemetry the probes' slope stands alone, as before.
 """
 
 from __future__ import annotations
@@ -22,6 +29,8 @@ import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
+
+from host.link.skew import SkewEnvelope, SkewEstimate
 
 WRAP_US = 1 << 32
 HALF_WRAP_US = 1 << 31
@@ -127,6 +136,15 @@ class ClockSync:
         self.probes_used += 1
         return True
 
+    def add_arrival(self, kind: object, mcu_ticks_32: int, arrival_ns: int) -> None:
+        """A telemetry frame arrived: `mcu_ticks_32` is its newest sample's stamp, `kind` tells
+        apart frames whose least delay differs (message and length). Used from the next probe."""
+        self._skew.add(kind, self.extend(mcu_ticks_32), arrival_ns)
+
+    def skew(self) -> SkewEstimate | None:
+        """The telemetry envelope's slope, for statistics; None until it has enough frames."""
+        return self._skew.estimate()
+
     def mcu_to_host_ns(self, mcu_ticks_32: int) -> int:
         """Host monotonic ns at which the controller clock read `mcu_ticks_32`."""
         return self.ext_to_host_ns(self.extend(mcu_ticks_32))
@@ -151,8 +169,7 @@ class ClockSync:
         fit = self._require_fit()
         x = fit.x_last if mcu_ticks_32 is None else self._extend_query(mcu_ticks_32)
         dx = x - fit.x0 - fit.mx
-        var_slope = fit.unit_var / fit.sxx if fit.sxx > 0.0 else 0.0
-        return math.sqrt(fit.unit_var / fit.w + var_slope * dx * dx)
+        return math.sqrt(fit.unit_var / fit.w + fit.slope_var * dx * dx)
 
     def estimate(self) -> ClockEstimate:
         """Snapshot of the fit."""
@@ -170,8 +187,10 @@ class ClockSync:
         )
 
     def _restart_fit(self) -> None:
-        """Drop the probes but keep the wrap extension."""
+        """Drop the probes and the envelope (both belong to the old clock), keep the wrap
+        extension."""
         self._history: deque[_Probe] = deque(maxlen=HISTORY_PROBES)
+        self._skew = SkewEnvelope(self.nominal_ns_per_tick)
         self._fit = None
         self._consecutive_outliers = 0
         self._streak_start_ns = 0
@@ -232,7 +251,7 @@ class ClockSync:
             y, sigma2 = self._host_time(p, min_delay)
             age_s = (newest - p.x) * self.nominal_ns_per_tick / NS_PER_S
             acc.add(p.x, y, math.exp(-age_s / DECAY_TIME_S) / sigma2)
-        return acc.result(self.nominal_ns_per_tick)
+        return acc.result(self.nominal_ns_per_tick, self._skew.estimate())
 
 
 @dataclass
@@ -255,11 +274,12 @@ class _Fit:
     mx: float
     my: float
     slope: float
-    sxx: float
+    sxx: float  # the probes' spread in x, weighted (0 while the slope is not fitted)
     w: float
     rss: float
     unit_var: float
     x_last: int
+    slope_var: float  # variance of the slope, probes and envelope together
 
 
 class _Accumulator:
@@ -283,14 +303,44 @@ class _Accumulator:
         self.syy += weight * dy * (ry - self.my)
         self.n += 1
 
-    def result(self, nominal_slope: float) -> _Fit:
-        """The fit; the nominal rate stands in for the slope until the probes span enough time."""
-        fitted = self.n >= MIN_FIT_PROBES
-        # Ridge toward the nominal rate: a short history cannot pull the slope far off it.
-        prior = self.w * PRIOR_SPAN_US**2
-        slope = (self.sxy + prior * nominal_slope) / (self.sxx + prior) if fitted else nominal_slope
+    def result(self, nominal_slope: float, skew: SkewEstimate | None) -> _Fit:
+        """The fit. Its slope leans on the envelope's by their variances; without one, on the
+        nominal rate as if the probes spanned another PRIOR_SPAN_US, so that a short history
+        cannot pull it far off. Too few probes: the envelope's or the nominal slope alone."""
+        if self.n < MIN_FIT_PROBES:
+            slope = nominal_slope if skew is None else skew.ns_per_tick
+            rss, unit_var = self._residuals(slope)
+            slope_var = 0.0 if skew is None else skew.variance
+            return self._fit(slope, 0.0, rss, unit_var, slope_var)
+        ridge = self.w * PRIOR_SPAN_US**2
+        slope = (self.sxy + ridge * nominal_slope) / (self.sxx + ridge)
+        rss, unit_var = self._residuals(slope)
+        prior, prior_slope = ridge, nominal_slope
+        if skew is not None:
+            # In the regression's units a slope known to variance v weighs as unit_var / v.
+            prior, prior_slope = unit_var / skew.variance, skew.ns_per_tick
+            slope = (self.sxy + prior * prior_slope) / (self.sxx + prior)
+            rss, unit_var = self._residuals(slope)
+        return self._fit(slope, self.sxx, rss, unit_var, unit_var / (self.sxx + prior))
+
+    def _residuals(self, slope: float) -> tuple[float, float]:
+        """Weighted residual sum of squares about that slope, and the unit variance."""
         rss = max(self.syy - 2 * slope * self.sxy + slope * slope * self.sxx, 0.0)
         n_eff = self.w**2 / self.w2
-        unit_var = max(rss / max(n_eff - 2.0, 1.0), 1.0)
-        sxx = self.sxx if fitted else 0.0
-        return _Fit(self.x0, self.y0, self.mx, self.my, slope, sxx, self.w, rss, unit_var, self.x0)
+        return rss, max(rss / max(n_eff - 2.0, 1.0), 1.0)
+
+    def _fit(self, slope: float, sxx: float, rss: float, unit_var: float, slope_var: float) -> _Fit:
+        """The snapshot, through the weighted means."""
+        return _Fit(
+            self.x0,
+            self.y0,
+            self.mx,
+            self.my,
+            slope,
+            sxx,
+            self.w,
+            rss,
+            unit_var,
+            self.x0,
+            slope_var,
+        )

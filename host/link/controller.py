@@ -19,7 +19,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,6 +48,7 @@ from host.link.samples import (
     HeadReading,
     SampleMessage,
     SampleSink,
+    frame_arrived,
     reading,
 )
 from host.link.session import SEQ_MOD, Session, SessionConfig
@@ -556,10 +557,16 @@ class Controller:
             self._status_changed.set()
             self._on_status(msg)
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
-            self._on_sample(msg)
+            self._on_samples(msg, [msg])
         elif isinstance(msg, BATCH_TYPES):
-            for sample in unpack(msg, self.batch_stats):  # each with its own MCU time
-                self._on_sample(sample)
+            self._on_samples(msg, unpack(msg, self.batch_stats))  # each with its own MCU time
+
+    def _on_samples(self, frame: object, samples: Sequence[SampleMessage]) -> None:
+        """One telemetry frame: its arrival to the clock's rate, then each sample."""
+        arrival_ns = self.session.transport.rx_time_ns or time.monotonic_ns()
+        frame_arrived(self.session.clock, frame, samples, arrival_ns)
+        for sample in samples:
+            self._on_sample(sample)
 
     def _on_sample(self, msg: SampleMessage) -> None:
         """Convert to host time and units; a failing sink is logged, never the link's problem."""

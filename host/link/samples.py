@@ -8,6 +8,7 @@ IDENTIFY, µm and µrad to mm and rad.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -90,6 +91,18 @@ class MarkReading:
 
 
 Reading = EncoderReading | HeadReading | RangeReading | MarkReading
+
+
+def frame_arrived(
+    clock: ClockSync, frame: object, samples: Sequence[SampleMessage], arrival_ns: int
+) -> None:
+    """A telemetry frame's newest stamp and arrival, for the clock's rate (host.link.skew).
+
+    Frames of another message or sample count spend another time on the wire, so each pair is
+    its own kind. A mark is left out: it goes when its edge comes, not when a frame fills.
+    """
+    if samples and not isinstance(frame, RefMark):
+        clock.add_arrival((type(frame).__name__, len(samples)), samples[-1].mcu_time_us, arrival_ns)
 
 
 def reading(msg: SampleMessage, clock: ClockSync, identity: Identity | None) -> Reading | None:

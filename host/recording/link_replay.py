@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import dataclasses
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from host.link.batches import BATCH_TYPES, unpack
 from host.link.clocksync import ClockSync
-from host.link.samples import EncoderReading, SampleMessage, SampleSink, reading
+from host.link.samples import EncoderReading, SampleMessage, SampleSink, frame_arrived, reading
 from host.link.snapshot import Identity
 from protocol import FrameDecoder, Packet
 from protocol.messages import ClockSync as ClockSyncMsg
@@ -115,10 +115,15 @@ class LinkReplay:
             elif self.clock.add_probe(probe[0], msg.mcu_time_us, t_ns, msg.rx_time_us):
                 self.stats.probes_used += 1
         elif isinstance(msg, EncoderSample | HeadSample | RangeSample | RefMark):
-            self._on_sample(msg)
+            self._on_frame(msg, [msg], t_ns)
         elif isinstance(msg, BATCH_TYPES):
-            for sample in unpack(msg):  # batched telemetry: each sample with its own MCU time
-                self._on_sample(sample)
+            self._on_frame(msg, unpack(msg), t_ns)  # batched: each sample with its own MCU time
+
+    def _on_frame(self, frame: object, samples: Sequence[SampleMessage], t_ns: int) -> None:
+        """A telemetry frame, as the live controller takes it: arrival to the clock, samples."""
+        frame_arrived(self.clock, frame, samples, t_ns)
+        for sample in samples:
+            self._on_sample(sample)
 
     def _on_identify(self, msg: Identify) -> None:
         """A handshake: a new boot id (or the first one) restarts the clock fit."""

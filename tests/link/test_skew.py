@@ -1,0 +1,137 @@
+"""The controller clock's rate from the telemetry's one-way delays, alone and in the clock sync."""
+
+from __future__ import annotations
+
+import random
+
+from host.link.clocksync import WRAP_US, ClockSync
+from host.link.skew import MIN_BINS, SkewEnvelope
+
+DRIFT_PPM = 20.0
+NS_PER_S = 1_000_000_000
+# Three kinds of frame with their own least delay, as encoder batches, range batches and head
+# samples have over the radio: (kind, frames a second, floor ns).
+KINDS = (("enc", 25, 9_000_000), ("range", 12, 6_000_000), ("head", 10, 4_500_000))
+
+
+def mcu_at(host_ns: float, drift_ppm: float = DRIFT_PPM) -> int:
+    """The controller's clock (extended µs) at a host time: 20 ppm fast, 123 s ahead."""
+    return 123_000_000 + int(host_ns * (1 + drift_ppm * 1e-6) / 1000)
+
+
+def feed(
+    env: SkewEnvelope | ClockSync,
+    rng: random.Random,
+    start_s: float,
+    seconds: float,
+    busy_from_s: float | None = None,
+) -> None:
+    """Telemetry for `seconds`: every frame waits a random queue above its kind's floor, from
+    nothing (a free link) to ~20 ms; from `busy_from_s` on, 3 s in which every frame waited."""
+    frames = []
+    for kind, hz, floor_ns in KINDS:
+        n = int(seconds * hz)
+        for i in range(n):
+            sent_ns = (start_s + i / hz + rng.uniform(0, 0.002)) * NS_PER_S
+            queue_ns = 0.0 if rng.random() < 0.1 else rng.expovariate(1 / 4e6)
+            if busy_from_s is not None and busy_from_s <= sent_ns / NS_PER_S < busy_from_s + 3:
+                queue_ns += 20e6
+            frames.append((sent_ns + floor_ns + queue_ns + rng.uniform(0, 30e3), kind, sent_ns))
+    for arrival_ns, kind, sent_ns in sorted(frames):
+        if isinstance(env, ClockSync):
+            env.add_arrival(kind, mcu_at(sent_ns) % WRAP_US, int(arrival_ns))
+        else:
+            env.add(kind, mcu_at(sent_ns), int(arrival_ns))
+
+
+def drift_ppm_of(ns_per_tick: float) -> float:
+    """The controller clock's rate error from host ns per tick."""
+    return (1000.0 / ns_per_tick - 1.0) * 1e6
+
+
+def test_envelope_recovers_the_rate_within_its_reported_sigma() -> None:
+    for seed in range(5):
+        env = SkewEnvelope(1000.0)
+        feed(env, random.Random(seed), 0.0, 90.0)
+        est = env.estimate()
+        assert est is not None
+        sigma_ppm = est.variance**0.5 / 1000.0 * 1e6
+        error_ppm = drift_ppm_of(est.ns_per_tick) - DRIFT_PPM
+        assert abs(error_ppm) < 3 * sigma_ppm, (seed, error_ppm, sigma_ppm)
+        assert abs(error_ppm) < 1.0
+        assert sigma_ppm < 1.0
+        assert est.bins >= 3 * 70  # some high minima of the skewed floor are dropped too
+
+
+def test_seconds_in_which_every_frame_waited_are_left_out() -> None:
+    env = SkewEnvelope(1000.0)
+    feed(env, random.Random(7), 0.0, 60.0, busy_from_s=50.0)  # late in the window: a lever
+    est = env.estimate()
+    assert est is not None
+    assert est.rejected >= 3 * 2
+    assert abs(drift_ppm_of(est.ns_per_tick) - DRIFT_PPM) < 1.0
+
+
+def test_nothing_before_enough_seconds_and_stale_stamps_add_nothing() -> None:
+    env = SkewEnvelope(1000.0)
+    feed(env, random.Random(3), 0.0, MIN_BINS - 0.5)  # the first second is partial
+    assert env.estimate() is None
+    feed(env, random.Random(4), MIN_BINS - 0.5, 30.0)
+    before = env.estimate()
+    assert before is not None
+    # A frame stamped 20 s ago arriving now (a stale batch) changes nothing.
+    env.add("range", mcu_at(10 * NS_PER_S), int(38 * NS_PER_S))
+    assert env.estimate() == before
+
+
+def test_kinds_beyond_the_cap_forget_the_stalest() -> None:
+    env = SkewEnvelope(1000.0)
+    for kind in range(40):
+        env.add(kind, mcu_at(kind * 1e6), int(kind * 1e6))
+    assert len(env._kinds) <= 16
+    assert 39 in env._kinds
+    assert 0 not in env._kinds
+
+
+def biased_probe(sync: ClockSync, rng: random.Random, i: int, step_us: int = 0) -> None:
+    """Probe `i` (1 Hz) over a half-duplex radio whose traffic changes every 15 s and with it
+    how the least round trip splits between the legs (±1 ms): a bias no probe can see."""
+    t0 = i * NS_PER_S + rng.uniform(0, 1e6)
+    split = random.Random(i // 15).uniform(-1e6, 1e6)
+    out = 5e6 + split + rng.expovariate(1 / 0.3e6)
+    back = 5e6 - split + rng.expovariate(1 / 0.3e6)
+    rx = mcu_at(t0 + out) + step_us
+    sync.add_probe(int(t0), rx % WRAP_US, int(t0 + out + back), rx % WRAP_US)
+
+
+def test_the_clock_sync_takes_its_rate_from_telemetry_over_biased_probes() -> None:
+    with_telemetry, probes_only = ClockSync(), ClockSync()
+    rng_with, rng_without, tele = random.Random(11), random.Random(11), random.Random(12)
+    for second in range(60):
+        feed(with_telemetry, tele, float(second), 1.0)
+        biased_probe(with_telemetry, rng_with, second)
+        biased_probe(probes_only, rng_without, second)
+    assert with_telemetry.skew() is not None
+    assert probes_only.skew() is None
+    err_with = abs(with_telemetry.estimate().drift_ppm - DRIFT_PPM)
+    err_without = abs(probes_only.estimate().drift_ppm - DRIFT_PPM)
+    assert err_with < 1.5, err_with
+    assert err_without > 3 * err_with, (err_without, err_with)
+
+
+def test_reset_and_a_clock_step_forget_the_envelope() -> None:
+    sync = ClockSync()
+    rng, tele = random.Random(5), random.Random(6)
+    for second in range(20):
+        feed(sync, tele, float(second), 1.0)
+        biased_probe(sync, rng, second)
+    assert sync.skew() is not None
+    sync.reset()
+    assert sync.skew() is None
+    for second in range(20, 40):
+        feed(sync, tele, float(second), 1.0)
+        biased_probe(sync, rng, second)
+    assert sync.skew() is not None
+    for second in range(40, 140):  # the controller's clock jumps 10 s: the fit starts over
+        biased_probe(sync, rng, second, step_us=10_000_000)
+    assert sync.skew() is None
