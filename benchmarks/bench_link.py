@@ -5,6 +5,11 @@ tick (a 0–1 ms wait), as the firmware does. Beside our estimator, the same pro
 peers: ours without the controller's arrival stamp (the round-trip midpoint, what a controller
 that cannot stamp arrivals gets) and a naive midpoint fit.
 
+The telemetry-envelope section feeds 1 Hz probes whose legs split unevenly by an amount that
+changes every 15 s (the half-duplex radio's bias no round trip shows) to our estimator with the
+telemetry's arrivals (three kinds of frame, ~47 a second, each with its own floor) beside the same
+probes alone, and prints the fitted rate's error after 60 s and what the envelope costs.
+
 Run: python benchmarks/bench_link.py   (prints `metric: value` lines)
 """
 
@@ -26,6 +31,7 @@ from host.transport.memory import Impairment
 from protocol.messages import ParamSet
 from tests.link.fake_controller import FakeController
 from tests.link.test_clocksync import SimLink, run_probes
+from tests.link.test_skew import DRIFT_PPM, biased_probe, feed, mcu_at
 
 COMMANDS = 2000
 
@@ -129,6 +135,38 @@ def probe_cost_us() -> float:
     return (time.perf_counter() - t0) / 100 * 1e6
 
 
+def envelope_rate_errors_ppm(seeds: int = 10) -> tuple[list[float], list[float]]:
+    """|fitted rate − true| after 60 s of biased 1 Hz probes: with telemetry, and probes alone."""
+    with_tele, alone = [], []
+    for seed in range(seeds):
+        sync, bare = ClockSync(), ClockSync()
+        rng_a, rng_b, tele = random.Random(seed), random.Random(seed), random.Random(100 + seed)
+        for second in range(60):
+            feed(sync, tele, float(second), 1.0)
+            biased_probe(sync, rng_a, second)
+            biased_probe(bare, rng_b, second)
+        with_tele.append(abs(sync.estimate().drift_ppm - DRIFT_PPM))
+        alone.append(abs(bare.estimate().drift_ppm - DRIFT_PPM))
+    return with_tele, alone
+
+
+def envelope_costs_us() -> tuple[float, float]:
+    """CPU per telemetry frame (add_arrival), and per refit of a full envelope (two minutes of
+    three kinds), which a used probe pays at most once per closed second."""
+    sync, rng = ClockSync(), random.Random(3)
+    feed(sync, rng, 0.0, 130.0)
+    stamps = [(mcu_at(130e9 + i * 2e7) % WRAP_US, int(130e9 + i * 2e7 + 9e6)) for i in range(5000)]
+    t0 = time.perf_counter()
+    for mcu, arrival in stamps:
+        sync.add_arrival("enc", mcu, arrival)
+    per_frame = (time.perf_counter() - t0) / len(stamps) * 1e6
+    envelope = sync._skew
+    t0 = time.perf_counter()
+    for _ in range(50):
+        envelope._fit()
+    return per_frame, (time.perf_counter() - t0) / 50 * 1e6
+
+
 def main() -> None:
     for loss in (0.0, 0.1):
         rate, retx = asyncio.run(command_rate(loss))
@@ -144,6 +182,14 @@ def main() -> None:
     print(f"clocksync_no_rx_stamp_xbee_worst_error_us_max: {max(no_rx):.0f}")
     print(f"naive_midpoint_xbee_worst_error_us_max: {max(naive):.0f}")
     print(f"clocksync_add_probe_us: {probe_cost_us():.0f}")
+    with_tele, alone = envelope_rate_errors_ppm()
+    print(f"clocksync_biased_probes_rate_error_ppm_median: {statistics.median(alone):.2f}")
+    print(f"clocksync_with_telemetry_rate_error_ppm_median: {statistics.median(with_tele):.2f}")
+    print(f"clocksync_biased_probes_rate_error_ppm_max: {max(alone):.2f}")
+    print(f"clocksync_with_telemetry_rate_error_ppm_max: {max(with_tele):.2f}")
+    per_frame, per_probe = envelope_costs_us()
+    print(f"clocksync_add_arrival_us: {per_frame:.1f}")
+    print(f"clocksync_envelope_refit_us: {per_probe:.0f}")
 
 
 if __name__ == "__main__":

@@ -253,8 +253,9 @@ def _trolley_s(controller: Any, env: CommissioningEnv) -> float | None:
 def _clock_sigma_ms(controller: Any) -> float | None:
     """The link's clock-sync σ now (ms), as its estimator measures it; None before a fit.
 
-    It grows with the link's load (slow round trips weigh less in its fit); the rig file's
-    value, a default until measured, does not.
+    It grows with the link's load (slow round trips weigh less in its fit) and holds the
+    link's asymmetry σ (host.service.wiring.CLOCK_ASYMMETRY_SIGMA_US); the rig file's value, a
+    default until measured, does neither.
     """
     clock = getattr(getattr(controller, "session", None), "clock", None)
     if clock is None or not clock.ready:

@@ -68,12 +68,22 @@ class ClockSync:
 
     _fit: _Fit | None
 
-    def __init__(self, mcu_clock_hz: int = 1_000_000, outbound_fraction: float = 0.5) -> None:
-        """`outbound_fraction`: share of the minimum delay spent on the way to the controller."""
-        if mcu_clock_hz <= 0 or not 0.0 <= outbound_fraction <= 1.0:
-            raise ValueError("mcu_clock_hz must be > 0 and outbound_fraction in [0, 1]")
+    def __init__(
+        self,
+        mcu_clock_hz: int = 1_000_000,
+        outbound_fraction: float = 0.5,
+        asymmetry_sigma_ns: float = 0.0,
+    ) -> None:
+        """`outbound_fraction`: share of the minimum delay spent on the way to the controller.
+        `asymmetry_sigma_ns`: σ of the legs' uneven split that no round trip shows (a radio's
+        queues), part of `uncertainty_ns`; it moves the mapping as a bias, not as scatter."""
+        if mcu_clock_hz <= 0 or not 0.0 <= outbound_fraction <= 1.0 or asymmetry_sigma_ns < 0:
+            raise ValueError(
+                "mcu_clock_hz must be > 0, outbound_fraction in [0, 1], asymmetry_sigma_ns >= 0"
+            )
         self.nominal_ns_per_tick = NS_PER_S / mcu_clock_hz
         self.outbound_fraction = outbound_fraction
+        self.asymmetry_sigma_ns = asymmetry_sigma_ns
         self.probes_used = 0
         self.outliers = 0
         self.filtered = 0
@@ -165,11 +175,13 @@ class ClockSync:
         return fit.x0 + round(fit.mx + (host_ns - fit.y0 - fit.my) / fit.slope)
 
     def uncertainty_ns(self, mcu_ticks_32: int | None = None) -> float:
-        """One-sigma error of the mapping at that controller time (default: the latest probe)."""
+        """One-sigma error of the mapping at that controller time (default: the latest probe):
+        the fit's own, and the link's asymmetry σ."""
         fit = self._require_fit()
         x = fit.x_last if mcu_ticks_32 is None else self._extend_query(mcu_ticks_32)
         dx = x - fit.x0 - fit.mx
-        return math.sqrt(fit.unit_var / fit.w + fit.slope_var * dx * dx)
+        statistical = fit.unit_var / fit.w + fit.slope_var * dx * dx
+        return math.sqrt(statistical + self.asymmetry_sigma_ns**2)
 
     def estimate(self) -> ClockEstimate:
         """Snapshot of the fit."""

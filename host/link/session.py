@@ -93,6 +93,9 @@ class SessionConfig:
     # written behind another frame it would queue on the line, a delay on the way out only that
     # the estimator cannot tell from link asymmetry. The largest frame takes 7.3 ms at 115200 Bd.
     clock_probe_quiet_s: float = 0.01
+    # σ of the legs' uneven split that the clock probes cannot see (ClockSync's
+    # asymmetry_sigma_ns): what a stamp mapped through the clock is known to, beside its fit.
+    clock_asymmetry_sigma_us: float = 0.0
     rto_initial_s: float = 0.25
     rto_min_s: float = 0.02
     rto_max_s: float = 2.0
@@ -196,7 +199,7 @@ class Session:
 
     def __post_init__(self) -> None:
         self.stats = LinkStats()
-        self.clock = ClockSync()
+        self.clock = self._new_clock(1_000_000)
         self.probe_rate = ProbeRate(
             self.config.clock_sync_interval_s, self.config.clock_sync_slow_interval_s
         )
@@ -282,7 +285,7 @@ class Session:
         _check_identity(ident)
         rebooted = self.identity is not None and self.identity.boot_id != ident.boot_id
         if rebooted or self.identity is None:
-            self.clock = ClockSync(ident.mcu_clock_hz or 1_000_000)
+            self.clock = self._new_clock(ident.mcu_clock_hz or 1_000_000)
             self.probe_rate.reset()
         if rebooted:
             self.stats.controller_resets += 1
@@ -555,6 +558,11 @@ class Session:
         previous, self._peer_uptime_ms = self._peer_uptime_ms, msg.uptime_ms
         if previous is not None and (msg.uptime_ms - previous) % U32_MOD >= U32_MOD // 2:
             self._emit(LinkEvent.RESET_SUSPECTED, f"uptime fell from {previous} ms")
+
+    def _new_clock(self, mcu_clock_hz: int) -> ClockSync:
+        """A fresh clock fit for a controller clock of that rate."""
+        sigma_ns = self.config.clock_asymmetry_sigma_us * 1000.0
+        return ClockSync(mcu_clock_hz, asymmetry_sigma_ns=sigma_ns)
 
     def _on_clock_reply(self, msg: ClockSyncReply) -> None:
         """Pair the reply with its probe and feed the estimator."""

@@ -114,6 +114,14 @@ RANGING_RATES_HZ: dict[str, dict[Stream, int]] = {
     "can": {Stream.ENCODER: 250, Stream.RANGE: 250},
 }
 
+# How unevenly a link's legs may split a clock probe's round trip beyond what its fit sees (the
+# clock's `uncertainty_ns`, which `calibrate latency` and the error budget take): on the radio the
+# probes queue behind telemetry on the shared air, more on one leg than the other, and the
+# daemon's clock was 84-712 µs off (median, per run) during the quick demo's latency calibration
+# over three seeds (2026-12-03), ~430 µs RMS. A UART's or CAN's legs queue apart and the fit's
+# own σ covers them.
+CLOCK_ASYMMETRY_SIGMA_US: dict[str, float] = {"xbee": 500.0}
+
 # On XBee the MAC retries every packet, so the controller's frames go missing mostly when a
 # module's buffer overflows: then the daemon slows the streams until they fit the air again.
 XBEE_SHEDDING = SheddingConfig()
@@ -212,7 +220,10 @@ def controller_factory(
     config: Config, record_tap: RecordTap, transport: Transport | None = None
 ) -> Controller:
     """The real controller on the configured link (or on `transport`, for an emulator)."""
-    session = SessionConfig(heartbeat_interval_s=config.link.heartbeat_ms / 1000.0)
+    session = SessionConfig(
+        heartbeat_interval_s=config.link.heartbeat_ms / 1000.0,
+        clock_asymmetry_sigma_us=CLOCK_ASYMMETRY_SIGMA_US.get(config.link.kind, 0.0),
+    )
     backoff = BackoffConfig(max_s=config.link.reconnect_max_s)
 
     def on_event(event: LinkEvent, detail: str) -> None:
@@ -238,10 +249,20 @@ def controller_factory(
 
 
 def clock_stats(ctrl: Controller) -> dict[str, Any]:
-    """The clock sync's error and drift, for the station's and the terminal's status."""
-    clock = ctrl.session.clock.estimate()
+    """The clock sync's error and drift, for the station's and the terminal's status, and the
+    drift the telemetry's one-way delays alone give (host.link.skew; None before ~10 s of
+    telemetry): the fit leans on it, so the two differ by a few ppm at most once settled."""
+    sync = ctrl.session.clock
+    clock, skew = sync.estimate(), sync.skew()
     sigma_us = round(clock.sigma_ns / 1e3, 3) if clock.probes_used else None
-    return {"clock_sigma_us": sigma_us, "clock_drift_ppm": round(clock.drift_ppm, 3)}
+    envelope_ppm = None
+    if skew is not None:
+        envelope_ppm = round((sync.nominal_ns_per_tick / skew.ns_per_tick - 1.0) * 1e6, 3)
+    return {
+        "clock_sigma_us": sigma_us,
+        "clock_drift_ppm": round(clock.drift_ppm, 3),
+        "clock_telemetry_drift_ppm": envelope_ppm,
+    }
 
 
 def config_stream_rates(config: Config) -> dict[Stream, int]:

@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import random
+from types import SimpleNamespace
+from typing import Any
 
+import pytest
+
+from host.config import loads_config
 from host.link.clocksync import WRAP_US, ClockSync
 from host.link.skew import MIN_BINS, SkewEnvelope
+from host.service.wiring import CLOCK_ASYMMETRY_SIGMA_US, clock_stats, controller_factory
+from host.transport.memory import MemoryTransport
 
 DRIFT_PPM = 20.0
 NS_PER_S = 1_000_000_000
@@ -135,3 +142,40 @@ def test_reset_and_a_clock_step_forget_the_envelope() -> None:
     for second in range(40, 140):  # the controller's clock jumps 10 s: the fit starts over
         biased_probe(sync, rng, second, step_us=10_000_000)
     assert sync.skew() is None
+
+
+def test_link_stats_show_the_telemetry_drift_beside_the_fit() -> None:
+    sync = ClockSync()
+    ctrl: Any = SimpleNamespace(session=SimpleNamespace(clock=sync))
+    assert clock_stats(ctrl)["clock_telemetry_drift_ppm"] is None
+    rng, tele = random.Random(5), random.Random(6)
+    for second in range(40):
+        feed(sync, tele, float(second), 1.0)
+        biased_probe(sync, rng, second)
+    stats = clock_stats(ctrl)
+    assert abs(stats["clock_telemetry_drift_ppm"] - DRIFT_PPM) < 2.0
+    assert abs(stats["clock_drift_ppm"] - stats["clock_telemetry_drift_ppm"]) < 2.0
+
+
+def test_the_links_asymmetry_sigma_is_part_of_the_clocks_uncertainty() -> None:
+    plain, radio = ClockSync(), ClockSync(asymmetry_sigma_ns=500_000.0)
+    rng_a, rng_b = random.Random(8), random.Random(8)
+    for second in range(30):
+        biased_probe(plain, rng_a, second)
+        biased_probe(radio, rng_b, second)
+    assert radio.mcu_to_host_ns(mcu_at(29e9) % WRAP_US) == plain.mcu_to_host_ns(
+        mcu_at(29e9) % WRAP_US
+    )  # the mapping is the same: only what it is known to differs
+    fit_ns = plain.uncertainty_ns()
+    assert radio.uncertainty_ns() == pytest.approx((fit_ns**2 + 500_000.0**2) ** 0.5)
+    with pytest.raises(ValueError, match="asymmetry_sigma_ns"):
+        ClockSync(asymmetry_sigma_ns=-1.0)
+
+
+def test_the_daemon_gives_the_radio_its_asymmetry_sigma() -> None:
+    assert CLOCK_ASYMMETRY_SIGMA_US == {"xbee": 500.0}
+    for kind, sigma_us in (("xbee", 500.0), ("serial", 0.0)):
+        config = loads_config(f'[link]\nkind = "{kind}"\n')
+        ctrl = controller_factory(config, lambda *_: None, MemoryTransport())
+        assert ctrl.session.config.clock_asymmetry_sigma_us == sigma_us
+        assert ctrl.session.clock.asymmetry_sigma_ns == sigma_us * 1000.0
