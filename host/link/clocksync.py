@@ -61,6 +61,7 @@ class ClockEstimate:
     outliers: int
     inconsistent: int  # replies whose residence exceeded their round trip
     sigma_ns: float  # residual scatter of the weighted fit
+    telemetry_frames: int = 0  # frames whose arrival fed the rate (add_arrival) in this fit
 
 
 class ClockSync:
@@ -196,6 +197,7 @@ class ClockSync:
             outliers=self.outliers,
             inconsistent=self.inconsistent,
             sigma_ns=math.sqrt(fit.rss / fit.w) if fit is not None else 0.0,
+            telemetry_frames=self._skew.frames,
         )
 
     def _restart_fit(self) -> None:
@@ -316,24 +318,25 @@ class _Accumulator:
         self.n += 1
 
     def result(self, nominal_slope: float, skew: SkewEstimate | None) -> _Fit:
-        """The fit. Its slope leans on the envelope's by their variances; without one, on the
-        nominal rate as if the probes spanned another PRIOR_SPAN_US, so that a short history
-        cannot pull it far off. Too few probes: the envelope's or the nominal slope alone."""
+        """The fit. Its slope leans on the nominal rate as if the probes spanned another
+        PRIOR_SPAN_US, so that a short history cannot pull it far off, and on the envelope's
+        slope by its variance. Too few probes: the envelope's or the nominal slope alone."""
         if self.n < MIN_FIT_PROBES:
             slope = nominal_slope if skew is None else skew.ns_per_tick
             rss, unit_var = self._residuals(slope)
             slope_var = 0.0 if skew is None else skew.variance
             return self._fit(slope, 0.0, rss, unit_var, slope_var)
         ridge = self.w * PRIOR_SPAN_US**2
-        slope = (self.sxy + ridge * nominal_slope) / (self.sxx + ridge)
-        rss, unit_var = self._residuals(slope)
-        prior, prior_slope = ridge, nominal_slope
-        if skew is not None:
-            # In the regression's units a slope known to variance v weighs as unit_var / v.
-            prior, prior_slope = unit_var / skew.variance, skew.ns_per_tick
-            slope = (self.sxy + prior * prior_slope) / (self.sxx + prior)
-            rss, unit_var = self._residuals(slope)
-        return self._fit(slope, self.sxx, rss, unit_var, unit_var / (self.sxx + prior))
+        _, unit_var = self._residuals((self.sxy + ridge * nominal_slope) / (self.sxx + ridge))
+        # In the regression's units a slope known to variance v weighs as unit_var / v. The
+        # nominal rate is no measurement (a crystal can be tens of ppm off): it steadies the
+        # slope but is not counted in its variance.
+        envelope = 0.0 if skew is None else unit_var / skew.variance
+        prior_sum = ridge * nominal_slope + (0.0 if skew is None else envelope * skew.ns_per_tick)
+        slope = (self.sxy + prior_sum) / (self.sxx + ridge + envelope)
+        rss, _ = self._residuals(slope)
+        slope_var = unit_var / (self.sxx + envelope) if self.sxx + envelope > 0.0 else 0.0
+        return self._fit(slope, self.sxx, rss, unit_var, slope_var)
 
     def _residuals(self, slope: float) -> tuple[float, float]:
         """Weighted residual sum of squares about that slope, and the unit variance."""

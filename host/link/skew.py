@@ -15,18 +15,26 @@ Frames of each kind and length have a floor of their own (a longer frame spends 
 air and the UART), so each kind keeps its own minima. A robust line comes first (the median
 slope between minima half the window apart), so that minima far off it (a second whose every
 frame waited, a host stall) can be dropped; then one slope is fitted through the rest by least
-squares, each kind with its own intercept and weighted by its own scatter.
-The fit reports the slope's variance, so the clock sync can weigh it against its probes'.
+squares, each kind with its own intercept and weighted by its own scatter. The fit reports the
+slope's variance, so the clock sync can weigh it against its probes'. A floor that moved for
+every kind at once (the host's USB latency, its load) looks like a rate error; it shows as the
+window's recent half disagreeing with the whole by more than their noise explains, and that
+excess is added to the variance, so the clock sync then leans on its probes instead.
+
+Seconds are bins of 2^k controller ticks (2^20 µs at 1 MHz) counted from tick zero, not from the
+first frame seen, so that a recording replayed from the middle of a session bins as the live
+session did and, once its window has filled, fits the same line.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
-BIN_S = 1.0  # one minimum per kind per second of controller time
-HISTORY_BINS = 120  # two minutes of minima per kind
-MIN_BINS = 8  # a kind contributes once it has this many closed seconds
+BIN_S = 1.0  # about one minimum per kind per second (a power of two of ticks)
+HISTORY_S = 120.0  # the window: minima older than this behind the newest are left out
+MIN_BINS = 8  # a kind contributes once it has this many closed seconds in the window
 MAX_KINDS = 16  # kinds kept at once: the stalest is forgotten beyond this
 FLOOR_SIGMA_NS = 50_000.0  # no kind's scatter is taken as tighter than this
 # Successive minima are not independent (the floor wanders with the traffic): over the
@@ -45,18 +53,19 @@ class SkewEstimate:
     variance: float
     bins: int  # minima in the fit, all kinds
     rejected: int  # minima left out as far off the line
+    shift_variance: float = 0.0  # the part of `variance` a moved floor added
 
 
 @dataclass
 class _Kind:
-    """The closed one-second minima of one kind of frame, and the second being filled."""
+    """The closed minima of one kind of frame, and the bin being filled."""
 
-    bins: deque[tuple[float, float]]  # (x, d) relative to the envelope's origin
+    bins: deque[tuple[int, int]]  # (extended ticks, arrival ns) of each closed bin's minimum
     open_bin: int
-    open_x: float
-    open_d: float
+    open_x: int
+    open_y: int
     last_seen: int
-    opened: bool = False  # False while the open second is the kind's first
+    opened: bool = False  # False while the open bin is the kind's first: it began mid-way
 
 
 class SkewEnvelope:
@@ -64,80 +73,109 @@ class SkewEnvelope:
 
     def __init__(self, nominal_ns_per_tick: float) -> None:
         self.nominal = nominal_ns_per_tick
-        self.bin_ticks = max(1, round(BIN_S * 1e9 / nominal_ns_per_tick))
+        ticks_per_s = 1e9 / nominal_ns_per_tick
+        self.bin_ticks = 1 << max(0, round(math.log2(BIN_S * ticks_per_s)))
+        self.window_ticks = round(HISTORY_S * ticks_per_s)
+        history = math.ceil(self.window_ticks / self.bin_ticks) + 2
+        self._history = history
         self._kinds: dict[object, _Kind] = {}
-        self._origin: tuple[int, int] | None = None  # (ticks, ns) that d is measured from
         self._frames = 0
+        self._newest_bin_x = 0  # the latest closed minimum's ticks, any kind
+        self._version = 0  # moves whenever the fit's input does
         self._cached: tuple[int, SkewEstimate | None] = (-1, None)
 
     def add(self, kind: object, mcu_ticks: int, arrival_ns: int) -> None:
         """One frame: `kind` tells frames with different floors apart, `mcu_ticks` is extended."""
-        if self._origin is None:
-            self._origin = (mcu_ticks, arrival_ns)
-        x0, y0 = self._origin
-        x = float(mcu_ticks - x0)
-        d = float(arrival_ns - y0) - self.nominal * x
-        index = (mcu_ticks - x0) // self.bin_ticks
+        index = mcu_ticks // self.bin_ticks
         self._frames += 1
         k = self._kinds.get(kind)
         if k is None:
             if len(self._kinds) >= MAX_KINDS:
                 del self._kinds[min(self._kinds, key=lambda key: self._kinds[key].last_seen)]
-            self._kinds[kind] = _Kind(deque(maxlen=HISTORY_BINS), index, x, d, self._frames)
+                self._version += 1
+            bins: deque[tuple[int, int]] = deque(maxlen=self._history)
+            self._kinds[kind] = _Kind(bins, index, mcu_ticks, arrival_ns, self._frames)
             return
         k.last_seen = self._frames
         if index == k.open_bin:
-            if d < k.open_d:
-                k.open_x, k.open_d = x, d
+            if self._delay(mcu_ticks, arrival_ns) < self._delay(k.open_x, k.open_y):
+                k.open_x, k.open_y = mcu_ticks, arrival_ns
         elif index > k.open_bin:
-            if k.opened:  # the kind's first second began mid-way: its minimum is no floor
-                k.bins.append((k.open_x, k.open_d))
+            if k.opened:
+                k.bins.append((k.open_x, k.open_y))
+                self._newest_bin_x = max(self._newest_bin_x, k.open_x)
+                self._version += 1
             k.opened = True
-            k.open_bin, k.open_x, k.open_d = index, x, d
-        # A stamp from a second already closed (reordered, or a stale batch) adds nothing.
+            k.open_bin, k.open_x, k.open_y = index, mcu_ticks, arrival_ns
+        # A stamp from a bin already closed (reordered, or a stale batch) adds nothing.
+
+    @property
+    def frames(self) -> int:
+        """Frames fed since the start (or the last reset)."""
+        return self._frames
 
     def estimate(self) -> SkewEstimate | None:
         """The common slope over the kinds with enough minima; None before there are any."""
-        closed = sum(len(k.bins) for k in self._kinds.values())
-        if self._cached[0] == closed:
-            return self._cached[1]
-        result = self._fit()
-        self._cached = (closed, result)
-        return result
+        if self._cached[0] != self._version:
+            self._cached = (self._version, self._fit())
+        return self._cached[1]
+
+    def _delay(self, x: int, y: int) -> float:
+        """Arrival less the nominal time of the stamp: delay plus offset, to compare minima."""
+        return y - self.nominal * x
 
     def _fit(self) -> SkewEstimate | None:
-        """A robust slope first (the median of slopes between minima half the window apart),
-        then each kind's minima within REJECT_SIGMAS of their robust scatter about it, fitted
-        by least squares with one slope, an intercept per kind, each kind weighted by its
-        scatter."""
-        groups = [list(k.bins) for k in self._kinds.values() if len(k.bins) >= MIN_BINS]
-        if not groups:
+        """The whole window's line; its variance grows by how far the recent half disagrees."""
+        start = self._newest_bin_x - self.window_ticks
+        whole = self._line(start)
+        if whole is None:
             return None
+        slope, variance, bins, rejected = whole
+        recent = self._line(start + self.window_ticks // 2)
+        shift = 0.0
+        if recent is not None:
+            # The recent half's estimate contains the whole's: their difference has variance
+            # recent − whole when the floor held still; beyond that it moved.
+            shift = max(0.0, (recent[0] - slope) ** 2 - (recent[1] - variance))
+        return SkewEstimate(self.nominal + slope, variance + shift, bins, rejected, shift)
+
+    def _line(self, start_x: int) -> tuple[float, float, int, int] | None:
+        """Slope over nominal, its variance, minima used and rejected, for minima from `start_x`.
+
+        A robust slope first (the median of slopes between minima half the span apart), then
+        each kind's minima within REJECT_SIGMAS of their robust scatter about it, fitted by
+        least squares with one slope, an intercept per kind, each weighted by its scatter.
+        """
+        raw = [[p for p in k.bins if p[0] >= start_x] for k in self._kinds.values()]
+        raw = [p for p in raw if len(p) >= MIN_BINS]
+        if not raw:
+            return None
+        x0 = min(p[0][0] for p in raw)
+        y0 = min(p[0][1] for p in raw)
+        groups = [
+            [(float(x - x0), float(y - y0) - self.nominal * (x - x0)) for x, y in p] for p in raw
+        ]
         spaced = [s for points in groups for s in _spaced_slopes(points)]
         if not spaced:
             return None
         rough = _median(spaced)
-        kept: list[list[tuple[float, float]]] = []
-        sigmas: list[float] = []
-        rejected = 0
+        num = info = 0.0
+        used = rejected = 0
         for points in groups:
             level, sigma = _level_and_scatter(points, rough)
             limit = REJECT_SIGMAS * sigma
             good = [(x, d) for x, d in points if abs(d - rough * x - level) <= limit]
             rejected += len(points) - len(good)
-            if len(good) >= MIN_BINS:
-                kept.append(good)
-                sigmas.append(sigma)
-        num = info = 0.0
-        for points, sigma in zip(kept, sigmas, strict=True):
-            n = len(points)
-            xm, dm = sum(x for x, _ in points) / n, sum(d for _, d in points) / n
-            num += sum((x - xm) * (d - dm) for x, d in points) / sigma**2
-            info += sum((x - xm) ** 2 for x, _ in points) / sigma**2
+            if len(good) < MIN_BINS:
+                continue
+            n = len(good)
+            xm, dm = sum(x for x, _ in good) / n, sum(d for _, d in good) / n
+            num += sum((x - xm) * (d - dm) for x, d in good) / sigma**2
+            info += sum((x - xm) ** 2 for x, _ in good) / sigma**2
+            used += n
         if info <= 0.0:
             return None
-        bins = sum(len(p) for p in kept)
-        return SkewEstimate(self.nominal + num / info, VARIANCE_INFLATION / info, bins, rejected)
+        return num / info, VARIANCE_INFLATION / info, used, rejected
 
 
 def _spaced_slopes(points: list[tuple[float, float]]) -> list[float]:

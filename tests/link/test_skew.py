@@ -11,8 +11,11 @@ import pytest
 from host.config import loads_config
 from host.link.clocksync import WRAP_US, ClockSync
 from host.link.skew import MIN_BINS, SkewEnvelope
+from host.recording.link_replay import LinkReplay
 from host.service.wiring import CLOCK_ASYMMETRY_SIGMA_US, clock_stats, controller_factory
 from host.transport.memory import MemoryTransport
+from protocol import Packet, encode_frame
+from protocol.messages import EncoderBatch, EncoderSample, EncoderStep, RefMark
 
 DRIFT_PPM = 20.0
 NS_PER_S = 1_000_000_000
@@ -32,9 +35,11 @@ def feed(
     start_s: float,
     seconds: float,
     busy_from_s: float | None = None,
+    step_from_s: float | None = None,
 ) -> None:
     """Telemetry for `seconds`: every frame waits a random queue above its kind's floor, from
-    nothing (a free link) to ~20 ms; from `busy_from_s` on, 3 s in which every frame waited."""
+    nothing (a free link) to ~20 ms; from `busy_from_s` on, 3 s in which every frame waited;
+    from `step_from_s` on, every floor 2 ms higher."""
     frames = []
     for kind, hz, floor_ns in KINDS:
         n = int(seconds * hz)
@@ -43,6 +48,8 @@ def feed(
             queue_ns = 0.0 if rng.random() < 0.1 else rng.expovariate(1 / 4e6)
             if busy_from_s is not None and busy_from_s <= sent_ns / NS_PER_S < busy_from_s + 3:
                 queue_ns += 20e6
+            if step_from_s is not None and sent_ns / NS_PER_S >= step_from_s:
+                queue_ns += 2e6
             frames.append((sent_ns + floor_ns + queue_ns + rng.uniform(0, 30e3), kind, sent_ns))
     for arrival_ns, kind, sent_ns in sorted(frames):
         if isinstance(env, ClockSync):
@@ -179,3 +186,107 @@ def test_the_daemon_gives_the_radio_its_asymmetry_sigma() -> None:
         ctrl = controller_factory(config, lambda *_: None, MemoryTransport())
         assert ctrl.session.config.clock_asymmetry_sigma_us == sigma_us
         assert ctrl.session.clock.asymmetry_sigma_ns == sigma_us * 1000.0
+
+
+def feed_at(
+    env: SkewEnvelope, rng: random.Random, start_s: float, seconds: float, clock: Any
+) -> None:
+    """As `feed`, on a controller clock given as host ns → extended ticks."""
+    frames = []
+    for kind, hz, floor_ns in KINDS:
+        for i in range(int(seconds * hz)):
+            sent_ns = (start_s + i / hz + rng.uniform(0, 0.002)) * NS_PER_S
+            queue_ns = 0.0 if rng.random() < 0.1 else rng.expovariate(1 / 4e6)
+            frames.append((sent_ns + floor_ns + queue_ns, kind, sent_ns))
+    for arrival_ns, kind, sent_ns in sorted(frames):
+        env.add(kind, clock(sent_ns), int(arrival_ns))
+
+
+def test_the_estimate_follows_a_rate_that_changes_after_the_window_filled() -> None:
+    env, rng = SkewEnvelope(1000.0), random.Random(21)
+    feed_at(env, rng, 0.0, 150.0, mcu_at)
+    first = env.estimate()
+    assert first is not None
+    assert abs(drift_ppm_of(first.ns_per_tick) - DRIFT_PPM) < 1.0
+
+    # From 150 s the crystal runs 10 ppm faster (warmed up): continuous at the change.
+    def warmer(host_ns: float) -> int:
+        return mcu_at(150e9) + int((host_ns - 150e9) * (1 + 30e-6) / 1000)
+
+    feed_at(env, rng, 150.0, 150.0, warmer)
+    est = env.estimate()
+    assert est is not None
+    assert abs(drift_ppm_of(est.ns_per_tick) - 30.0) < 1.0
+
+
+def test_minima_from_before_a_long_silence_are_left_out() -> None:
+    env, rng = SkewEnvelope(1000.0), random.Random(22)
+    feed_at(env, rng, 0.0, 60.0, mcu_at)
+    start = 1860.0  # 30 min without telemetry, then a clock 5 ppm faster than before
+
+    def later(host_ns: float) -> int:
+        return mcu_at(start * 1e9) + int((host_ns - start * 1e9) * (1 + 25e-6) / 1000)
+
+    feed_at(env, rng, start, 60.0, later)
+    est = env.estimate()
+    assert est is not None
+    assert est.bins <= 3 * 58  # this minute's only
+    assert abs(drift_ppm_of(est.ns_per_tick) - 25.0) < 3 * (est.variance**0.5 / 1000.0 * 1e6)
+
+
+def test_a_floor_that_moved_for_every_kind_widens_the_variance() -> None:
+    still, moved = SkewEnvelope(1000.0), SkewEnvelope(1000.0)
+    feed(still, random.Random(23), 0.0, 100.0)
+    feed(moved, random.Random(23), 0.0, 100.0, step_from_s=70.0)  # +2 ms from 70 s on
+    calm, shifted = still.estimate(), moved.estimate()
+    assert calm is not None
+    assert shifted is not None
+    sigma_ppm = shifted.variance**0.5 / 1000.0 * 1e6
+    error_ppm = abs(drift_ppm_of(shifted.ns_per_tick) - DRIFT_PPM)
+    assert error_ppm > 5.0  # the step looks like a rate error...
+    assert error_ppm < 3 * sigma_ppm  # ...that the variance now owns up to
+    assert shifted.shift_variance > 10 * calm.variance
+    assert calm.shift_variance < calm.variance
+
+
+def test_the_controller_and_the_replay_feed_every_telemetry_frame_but_marks() -> None:
+    frames: list[object] = [
+        EncoderBatch(5_000, 10, 10, 0, 0, (EncoderStep(1000, 1, 1, 0, 0),)),
+        EncoderSample(9_000, 12, 12, 0, 0),
+        RefMark(9_500, 12),
+    ]
+    ctrl = controller_factory(loads_config(""), lambda *_: None, MemoryTransport())
+    for frame in frames:
+        ctrl._on_packet(Packet(1, 0, frame))
+    assert ctrl.session.clock.estimate().telemetry_frames == 2
+    replay = LinkReplay(sink=_NullSink())
+    for seq, frame in enumerate(frames):
+        replay.feed("rx", 1_000_000 + seq, encode_frame(frame, seq))
+    assert replay.clock.estimate().telemetry_frames == 2
+
+
+class _NullSink:
+    """A sample sink that keeps nothing."""
+
+    def on_encoder(self, t_host_ns: int, s_mm: float, velocity_mm_s: float, inputs: int) -> None:
+        """Nothing."""
+
+    def on_head(self, t_host_ns: int, pan_rad: float, tilt_rad: float) -> None:
+        """Nothing."""
+
+    def on_range(self, t_host_ns: int, distance_mm: float, quality: int) -> None:
+        """Nothing."""
+
+    def on_mark(self, t_host_ns: int, s_mm: float) -> None:
+        """Nothing."""
+
+
+def test_the_envelope_narrows_the_clocks_uncertainty_ahead() -> None:
+    with_telemetry, probes_only = ClockSync(), ClockSync()
+    rng_a, rng_b, tele = random.Random(31), random.Random(31), random.Random(32)
+    for second in range(60):
+        feed(with_telemetry, tele, float(second), 1.0)
+        biased_probe(with_telemetry, rng_a, second)
+        biased_probe(probes_only, rng_b, second)
+    ahead = mcu_at(360e9) % WRAP_US  # 300 s past the last probe: the slope's share dominates
+    assert with_telemetry.uncertainty_ns(ahead) < 0.8 * probes_only.uncertainty_ns(ahead)
