@@ -31,7 +31,7 @@ from host.transport.memory import Impairment
 from protocol.messages import ParamSet
 from tests.link.fake_controller import FakeController
 from tests.link.test_clocksync import SimLink, run_probes
-from tests.link.test_skew import DRIFT_PPM, biased_probe, feed, mcu_at
+from tests.link.test_skew import DRIFT_PPM, feed, mcu_at, paired_syncs
 
 COMMANDS = 2000
 
@@ -139,12 +139,7 @@ def envelope_rate_errors_ppm(seeds: int = 10) -> tuple[list[float], list[float]]
     """|fitted rate − true| after 60 s of biased 1 Hz probes: with telemetry, and probes alone."""
     with_tele, alone = [], []
     for seed in range(seeds):
-        sync, bare = ClockSync(), ClockSync()
-        rng_a, rng_b, tele = random.Random(seed), random.Random(seed), random.Random(100 + seed)
-        for second in range(60):
-            feed(sync, tele, float(second), 1.0)
-            biased_probe(sync, rng_a, second)
-            biased_probe(bare, rng_b, second)
+        sync, bare = paired_syncs(seed)
         with_tele.append(abs(sync.estimate().drift_ppm - DRIFT_PPM))
         alone.append(abs(bare.estimate().drift_ppm - DRIFT_PPM))
     return with_tele, alone

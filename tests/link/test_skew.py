@@ -118,13 +118,19 @@ def biased_probe(sync: ClockSync, rng: random.Random, i: int, step_us: int = 0) 
     sync.add_probe(int(t0), rx % WRAP_US, int(t0 + out + back), rx % WRAP_US)
 
 
-def test_the_clock_sync_takes_its_rate_from_telemetry_over_biased_probes() -> None:
+def paired_syncs(seed: int, seconds: int = 60) -> tuple[ClockSync, ClockSync]:
+    """The same biased probes to two clock syncs, one of them fed the telemetry as well."""
     with_telemetry, probes_only = ClockSync(), ClockSync()
-    rng_with, rng_without, tele = random.Random(11), random.Random(11), random.Random(12)
-    for second in range(60):
+    rng_with, rng_without, tele = random.Random(seed), random.Random(seed), random.Random(~seed)
+    for second in range(seconds):
         feed(with_telemetry, tele, float(second), 1.0)
         biased_probe(with_telemetry, rng_with, second)
         biased_probe(probes_only, rng_without, second)
+    return with_telemetry, probes_only
+
+
+def test_the_clock_sync_takes_its_rate_from_telemetry_over_biased_probes() -> None:
+    with_telemetry, probes_only = paired_syncs(11)
     assert with_telemetry.skew() is not None
     assert probes_only.skew() is None
     err_with = abs(with_telemetry.estimate().drift_ppm - DRIFT_PPM)
@@ -282,11 +288,6 @@ class _NullSink:
 
 
 def test_the_envelope_narrows_the_clocks_uncertainty_ahead() -> None:
-    with_telemetry, probes_only = ClockSync(), ClockSync()
-    rng_a, rng_b, tele = random.Random(31), random.Random(31), random.Random(32)
-    for second in range(60):
-        feed(with_telemetry, tele, float(second), 1.0)
-        biased_probe(with_telemetry, rng_a, second)
-        biased_probe(probes_only, rng_b, second)
+    with_telemetry, probes_only = paired_syncs(31)
     ahead = mcu_at(360e9) % WRAP_US  # 300 s past the last probe: the slope's share dominates
     assert with_telemetry.uncertainty_ns(ahead) < 0.8 * probes_only.uncertainty_ns(ahead)
