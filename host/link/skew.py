@@ -76,8 +76,7 @@ class SkewEnvelope:
         ticks_per_s = 1e9 / nominal_ns_per_tick
         self.bin_ticks = 1 << max(0, round(math.log2(BIN_S * ticks_per_s)))
         self.window_ticks = round(HISTORY_S * ticks_per_s)
-        history = math.ceil(self.window_ticks / self.bin_ticks) + 2
-        self._history = history
+        self._history = math.ceil(self.window_ticks / self.bin_ticks) + 2  # bins a kind keeps
         self._kinds: dict[object, _Kind] = {}
         self._frames = 0
         self._newest_bin_x = 0  # the latest closed minimum's ticks, any kind
@@ -134,8 +133,8 @@ class SkewEnvelope:
         recent = self._line(start + self.window_ticks // 2)
         shift = 0.0
         if recent is not None:
-            # The recent half's estimate contains the whole's: their difference has variance
-            # recent − whole when the floor held still; beyond that it moved.
+            # The recent half's minima are part of the whole's: while the floor holds still
+            # the two slopes differ with variance recent − whole; beyond that it moved.
             shift = max(0.0, (recent[0] - slope) ** 2 - (recent[1] - variance))
         return SkewEstimate(self.nominal + slope, variance + shift, bins, rejected, shift)
 
