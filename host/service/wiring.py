@@ -114,8 +114,8 @@ RANGING_RATES_HZ: dict[str, dict[Stream, int]] = {
     "can": {Stream.ENCODER: 250, Stream.RANGE: 250},
 }
 
-# How unevenly a link's legs may split a clock probe's round trip beyond what its fit sees (the
-# clock's `uncertainty_ns`, which `calibrate latency` and the error budget take): on the radio the
+# How unevenly a link's legs may split a clock probe's round trip beyond what its fit sees (part
+# of the clock's `uncertainty_ns`, the σ `calibrate latency` takes for the clock): on the radio the
 # probes queue behind telemetry on the shared air, more on one leg than the other, and the
 # daemon's clock was 84-712 µs off (median, per run) during the quick demo's latency calibration
 # over three seeds (2026-12-03), ~430 µs RMS. A UART's or CAN's legs queue apart and the fit's
