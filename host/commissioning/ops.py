@@ -348,7 +348,8 @@ async def op_calibrate_latency(ctx: OpContext, args: Mapping[str, Any]) -> Any:
         if angles is None:
             raise AbortedError(f"the board cannot be aimed at from s = {station:.0f} mm")
         view = ViewTarget(station, angles[0], angles[1], f"s={station:.0f}")
-        io = RigIO(controller, tap, speed, home_s_mm=env.home_s_mm())
+        # to the span's start at the travel speed; only the passes go at `speed`
+        io = RigIO(controller, tap, home_s_mm=env.home_s_mm())
         det = BoardDetector(spec)
         frames = await latency_run.capture_passes(
             io, tap, pose_at, det, view, span, speed, passes, progress

@@ -156,12 +156,13 @@ def default_plan(
         top = min(tilt_limits[1], math.pi / 2)
         bottom = max(tilt_limits[0], MIN_TILT_RAD)
         tilts_rad = list(np.linspace(bottom, top, 3)) if top > bottom else [top]
+    # In ascending order: the pan axis ends at ±180°, so going from +150° to −150° is 300° of
+    # travel, not 60° (on the demo's runway that had the survey's head turning for 12 s more).
+    ascending = sorted(math.remainder(math.tau * (k + 0.5) / pans, math.tau) for k in range(pans))
     plan = []
     for i, s in enumerate(stations_mm):
         for j, tilt in enumerate(tilts_rad):
-            order = range(pans) if (i + j) % 2 == 0 else reversed(range(pans))
-            for k in order:
-                pan = math.remainder(math.tau * (k + 0.5) / pans, math.tau)
+            for pan in ascending if (i + j) % 2 == 0 else ascending[::-1]:
                 if clean_hit(rig, hall, float(s), pan, float(tilt)) is not None:
                     plan.append(ViewTarget(float(s), pan, float(tilt), f"s={s:.0f}"))
     return plan

@@ -122,3 +122,16 @@ def test_a_stricter_threshold_fails_a_noisy_rangefinder() -> None:
     fit = fit_mount(spec, noisy, MountThresholds(max_rms_mm=1.0))
     assert not fit.passed
     assert any("RMS residual" in r for r in fit.reasons)
+
+
+def test_the_plan_sweeps_the_pan_one_way_per_station_and_tilt() -> None:
+    # the pan axis stops at ±180°: +150° to −150° is 300° of turning, not 60°
+    plan = plan_for(hall_rig())
+    sweeps: dict[tuple[float, float], list[float]] = {}
+    for v in plan:
+        sweeps.setdefault((v.s_mm, v.tilt_rad), []).append(v.pan_rad)
+    assert len(sweeps) > 1
+    for pans in sweeps.values():
+        steps = np.diff(pans)
+        assert np.all(steps > 0) or np.all(steps < 0), pans
+        assert abs(pans[-1] - pans[0]) < math.tau * 7 / 8 + 1e-9
