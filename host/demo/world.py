@@ -23,6 +23,7 @@ from hil_sim.camera import FrameClock, PlacedBoard, SyntheticCamera
 from hil_sim.links.can_node import VirtualCanNode
 from hil_sim.links.endpoint import SimPortEndpoint
 from hil_sim.links.pty_uart import PtyUart
+from hil_sim.links.wire_loop import WireLoop
 from hil_sim.links.xbee import CONTROLLER_ADDR64, XBeeModule
 from hil_sim.plant import Truth
 from hil_sim.runner import RealtimeRunner, Simulation
@@ -77,10 +78,19 @@ class SimWorld:
         self.sim = Simulation(scenario)
         self.runner = RealtimeRunner(self.sim)
         self._emulator: _Emulator | None = None
+        self._wire: WireLoop | None = None
         self._can_channel = f"orbitar-demo-{uuid.uuid4().hex[:8]}"
 
     async def start(self) -> None:
-        """Start the simulator thread and the link emulator."""
+        """Start the simulator thread and the link emulator, on a loop of its own
+        (`hil_sim.links.wire_loop`: the wire does not wait for the daemon's loop)."""
+        self._wire = WireLoop(f"hil-wire-{self.link}")
+        self._wire.start()
+        self._emulator = await self._wire.run(self._start_emulator())
+        self.runner.start()
+
+    async def _start_emulator(self) -> _Emulator:
+        """On the wire's loop: the emulator, built and started there."""
         import asyncio
 
         endpoint = SimPortEndpoint(self.runner.port, asyncio.get_running_loop())
@@ -92,14 +102,16 @@ class SimWorld:
         else:
             emulator = VirtualCanNode(endpoint, self._can_channel)
         await emulator.start()
-        self._emulator = emulator
-        self.runner.start()
+        return cast(_Emulator, emulator)
 
     async def stop(self) -> None:
-        """Stop the emulator and the simulator thread."""
-        if self._emulator is not None:
-            await self._emulator.stop()
+        """Stop the emulator, its loop and the simulator thread."""
+        if self._emulator is not None and self._wire is not None:
+            await self._wire.run(self._emulator.stop())
             self._emulator = None
+        if self._wire is not None:
+            self._wire.stop()
+            self._wire = None
         self.runner.stop()
 
     @property
