@@ -20,7 +20,7 @@ JOIN_TIMEOUT_S = 5.0
 
 
 class WireLoop:
-    """An event loop running in a daemon thread, for emulators to live on."""
+    """An event loop running in a daemon thread: a link emulator's, or the test suite's browser."""
 
     def __init__(self, name: str = "hil-wire") -> None:
         self.loop = asyncio.new_event_loop()

@@ -106,13 +106,15 @@ class SimWorld:
 
     async def stop(self) -> None:
         """Stop the emulator, its loop and the simulator thread."""
-        if self._emulator is not None and self._wire is not None:
-            await self._wire.run(self._emulator.stop())
+        try:
+            if self._emulator is not None and self._wire is not None:
+                await self._wire.run(self._emulator.stop())
+        finally:  # an emulator that fails to stop still lets its loop and the plant go
             self._emulator = None
-        if self._wire is not None:
-            self._wire.stop()
-            self._wire = None
-        self.runner.stop()
+            if self._wire is not None:
+                self._wire.stop()
+                self._wire = None
+            self.runner.stop()
 
     @property
     def emulator(self) -> object:

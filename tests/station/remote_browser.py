@@ -11,9 +11,10 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import inspect
-import threading
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
+
+from hil_sim.links.wire_loop import WireLoop
 
 T = TypeVar("T")
 CALL_TIMEOUT_S = 120.0  # a sync call (a property, `locator`): never a wait on the page
@@ -27,9 +28,9 @@ class BrowserThread:
     """The playwright driver and one Chromium on an event loop in a thread of their own."""
 
     def __init__(self, executable: str, args: list[str]) -> None:
-        self.loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self.loop.run_forever, name="browser", daemon=True)
-        self._thread.start()
+        self._wire = WireLoop("browser")
+        self.loop = self._wire.loop
+        self._wire.start()
         self._executable, self._args = executable, args
         self._pw: Any = None
         self._browser: Any = None
@@ -67,7 +68,7 @@ class BrowserThread:
         async def inner() -> Any:
             return await awaitable
 
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(inner(), self.loop))
+        return await self._wire.run(inner())
 
     def browser(self) -> Remote:
         """The browser, relaunched first if it went away (a crash in an earlier test)."""
@@ -94,9 +95,7 @@ class BrowserThread:
         try:
             self.run(stop())
         finally:
-            self.loop.call_soon_threadsafe(self.loop.stop)
-            self._thread.join(10.0)
-            self.loop.close()
+            self._wire.stop()
 
 
 class Remote:
