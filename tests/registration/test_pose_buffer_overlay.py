@@ -174,3 +174,64 @@ def test_clip_segments_to_rectangle() -> None:
     out = clip_segments(seg, 100, 80, 0.0)
     assert out.shape == (1, 2, 2)
     np.testing.assert_allclose(out[0], [[0.0, 50.0], [99.0, 50.0]])
+
+
+COUNT_RAD = 1e-4  # the simulated head's encoder count
+
+
+def _head(values: list[float]) -> AngleBuffer:
+    """A head buffer with these pan readings 20 ms apart (tilt 0)."""
+    buf = AngleBuffer(2)
+    for k, pan in enumerate(values):
+        buf.push(k * 20 * MS, [pan, 0.0])
+    return buf
+
+
+def test_angle_buffer_drops_a_lone_flicker_at_rest() -> None:
+    buf = _head([0.5, 0.5, 0.5 + COUNT_RAD, 0.5, 0.5])
+    for t_ms in (30, 40, 50):  # either side of the flickered reading, and on it
+        r = buf.lookup(t_ms * MS)
+        assert r.value is not None
+        assert r.value[0] == pytest.approx(0.5, abs=1e-15)
+
+
+def test_angle_buffer_keeps_a_motion_as_read() -> None:
+    # a slew speeding up, then at a constant rate: monotonic, so no sample moves, nothing lags
+    pans = [0.01 * k**2 for k in range(6)] + [0.25 + 0.1 * k for k in range(1, 6)]
+    buf = _head(pans)
+    for k in range(len(pans) - 1):
+        r = buf.lookup(k * 20 * MS + 10 * MS)
+        assert r.value is not None
+        assert r.value[0] == pytest.approx((pans[k] + pans[k + 1]) / 2, abs=1e-15)
+
+
+def test_angle_buffer_holds_a_small_newest_step_until_confirmed() -> None:
+    buf = _head([0.5, 0.5, 0.5 + COUNT_RAD])
+    r = buf.lookup(40 * MS)  # on the newest: a count off the two before, not yet confirmed
+    assert r.value is not None
+    assert r.value[0] == pytest.approx(0.5, abs=1e-15)
+    buf.push(60 * MS, [0.5 + COUNT_RAD, 0.0])  # confirmed: the head did move a count
+    r = buf.lookup(40 * MS)
+    assert r.value is not None
+    assert r.value[0] == pytest.approx(0.5 + COUNT_RAD, abs=1e-15)
+    big = _head([0.5, 0.5, 0.52])  # a slew's first step is taken as read
+    r = big.lookup(40 * MS)
+    assert r.value is not None
+    assert r.value[0] == pytest.approx(0.52, abs=1e-15)
+
+
+def test_angle_buffer_flicker_across_pi() -> None:
+    buf = _head([math.pi - 1e-5, math.pi - 1e-5, -math.pi + 5e-5, math.pi - 1e-5, math.pi - 1e-5])
+    r = buf.lookup(40 * MS)
+    assert r.value is not None
+    assert math.remainder(r.value[0] - (math.pi - 1e-5), 2 * math.pi) == pytest.approx(0, abs=1e-12)
+
+
+def test_angle_buffer_median_stays_in_its_segment() -> None:
+    buf = AngleBuffer(2)
+    for t_ms, pan, reset in ((0, 0.4, False), (20, 0.4, False), (40, 0.5, True), (60, 0.45, False),
+                             (80, 0.45, False)):  # fmt: skip
+        buf.push(t_ms * MS, [pan, 0.0], after_reset=reset)  # a new zero from 40 ms on
+    r = buf.lookup(40 * MS)  # its first sample: no neighbour before it in its segment
+    assert r.value is not None
+    assert r.value[0] == pytest.approx(0.5, abs=1e-15)
