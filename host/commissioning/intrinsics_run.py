@@ -131,10 +131,9 @@ async def capture(
                 await io.go(view.target)
                 frame = await io.grab()
                 snap = io.snapshot()
-                head = snap.get("head_rad") or (float("nan"), float("nan"))
                 s_mm = io.s_mm(snap)
                 view.s_mm = float("nan") if s_mm is None else s_mm
-                view.head_rad = (float(head[0]), float(head[1]))
+                view.head_rad = io.head_at_rest(snap)
                 view.rest_head_rad = io.rest_head_rad
                 search = _search(view, frame.image, attempt, detector, nominal)
                 searches.append(asyncio.create_task(search))

@@ -106,6 +106,18 @@ class RigIO:
         self.rest_head_rad = np.array(readings, dtype=np.float64).reshape(-1, 2)
         return frame
 
+    def head_at_rest(self, snap: Mapping[str, Any]) -> tuple[float, float]:
+        """The head's angles for the frame last grabbed: the median of its readings while it
+        stood (an angle encoder at rest flickers a count now and then: one reading can be a
+        count off, 0.3 mm at 3 m on the simulated head), else the snapshot's (nan if none)."""
+        if len(self.rest_head_rad):
+            first = self.rest_head_rad[0]
+            turn = np.remainder(self.rest_head_rad - first + math.pi, math.tau) - math.pi
+            pan, tilt = first + np.median(turn, axis=0)  # the pan's stop may sit at ±π
+            return float(pan), float(tilt)
+        head = snap.get("head_rad") or (math.nan, math.nan)
+        return float(head[0]), float(head[1])
+
     async def _until(self, ok: Any, timeout_s: float, what: str) -> None:
         """Poll the snapshot until ok(snapshot); AbortedError on halt or timeout."""
         deadline = time.monotonic() + timeout_s

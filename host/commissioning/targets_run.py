@@ -177,10 +177,9 @@ async def capture(
         await io.go(view.target)
         frame = await io.grab()
         snap = io.snapshot()
-        head = snap.get("head_rad") or (math.nan, math.nan)
         s_mm = io.s_mm(snap)
         view.s_mm = math.nan if s_mm is None else s_mm
-        view.head_rad = (float(head[0]), float(head[1]))
+        view.head_rad = io.head_at_rest(snap)
         T_c_w = rig.T_c_w(view.s_mm, *view.head_rad)
         uv, _ = camera.project(transform_points(T_c_w, points_w[list(view.wanted)]))
         found = await asyncio.to_thread(_find_all, frame.image, uv)
