@@ -86,7 +86,7 @@ class Plan:
 
     observation_mm: tuple[float, ...] = (0.0, 300.0, 2000.0)
     observations: int = 30
-    travel_speed_mm_s: float = 250.0
+    travel_speed_mm_s: float = 500.0  # between observations: the controller's MAX_SPEED
     moving_length_mm: float = 1500.0
     moving_speed_mm_s: float = 100.0
     moving_samples: int = 30
@@ -101,7 +101,6 @@ class Plan:
         return Plan(
             observation_mm=(0.0, 300.0),
             observations=8,
-            travel_speed_mm_s=500.0,
             moving_length_mm=300.0,
             moving_speed_mm_s=300.0,
             moving_samples=8,
