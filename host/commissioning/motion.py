@@ -25,7 +25,7 @@ from host.commissioning.frames import FrameTap, wait_frame
 from host.commissioning.plan import ViewTarget
 from host.control.api import ControllerLike
 from host.frames.sources import Frame
-from host.geometry.transforms import FloatArray
+from host.geometry.transforms import FloatArray, angle_median
 
 POSITION_TOL_MM = 0.5
 HEAD_TOL_RAD = 2e-3
@@ -35,6 +35,7 @@ POLL_S = 0.02
 MOVE_TIMEOUT_S = 60.0
 HEAD_TIMEOUT_S = 15.0
 FRAME_TIMEOUT_S = 5.0
+SAME_SAMPLE_S = 0.002  # two polls whose head sample is this close in time read the same one
 STAMP_MARGIN_S = 0.1  # a frame stamped this long after rest was exposed after it, even at delivery
 TRAVEL_SPEED_MM_S = 500.0  # the controller's MAX_SPEED default
 HALTED_STATES = ("ESTOP", "FAULT")
@@ -42,6 +43,28 @@ HALTED_STATES = ("ESTOP", "FAULT")
 
 class AbortedError(RuntimeError):
     """The rig cannot carry on (e-stop, fault, link down, not homed, a timeout)."""
+
+
+@dataclass
+class RestReadings:
+    """The head's angles while it stands, one per head sample: polls outpace the head's
+    telemetry (10-50 Hz), and a sample read twice would weigh twice in its noise and in a
+    median of neighbours. Every poll counts where the snapshot gives no `head_age_s`."""
+
+    readings: list[tuple[float, float]] = field(default_factory=list)
+    _last_sample_s: float = math.nan
+
+    def take(self, snap: Mapping[str, Any], now_s: float) -> None:
+        """One poll's snapshot, taken at monotonic `now_s`."""
+        head, age = snap.get("head_rad"), snap.get("head_age_s")
+        if not head:
+            return
+        if age is not None:
+            sample_s = now_s - float(age)
+            if abs(sample_s - self._last_sample_s) < SAME_SAMPLE_S:
+                return
+            self._last_sample_s = sample_s
+        self.readings.append((float(head[0]), float(head[1])))
 
 
 @dataclass
@@ -92,18 +115,17 @@ class RigIO:
         await asyncio.sleep(rest_s - time.monotonic())
 
     async def grab(self) -> Frame:
-        """A frame exposed after the rig came to rest; the head's readings while it stood
-        waiting for it are kept in `rest_head_rad` (its read noise: commissioning.head_noise)."""
+        """A frame exposed after the rig came to rest; the head's samples while it stood
+        waiting for it are kept in `rest_head_rad` (its read noise: commissioning.head_noise),
+        each once where the snapshot says how old its head sample is."""
         after_ns = time.monotonic_ns() + round(STAMP_MARGIN_S * 1e9)
-        readings: list[tuple[float, float]] = []
+        rest = RestReadings()
 
         def read_head() -> None:
-            head = self.controller.snapshot().get("head_rad")
-            if head:
-                readings.append((float(head[0]), float(head[1])))
+            rest.take(self.controller.snapshot(), time.monotonic())
 
         frame = await wait_frame(self.frames, after_ns, FRAME_TIMEOUT_S, read_head)
-        self.rest_head_rad = np.array(readings, dtype=np.float64).reshape(-1, 2)
+        self.rest_head_rad = np.array(rest.readings, dtype=np.float64).reshape(-1, 2)
         return frame
 
     def head_at_rest(self, snap: Mapping[str, Any]) -> tuple[float, float]:
@@ -111,9 +133,7 @@ class RigIO:
         stood (an angle encoder at rest flickers a count now and then: one reading can be a
         count off, 0.3 mm at 3 m on the simulated head), else the snapshot's (nan if none)."""
         if len(self.rest_head_rad):
-            first = self.rest_head_rad[0]
-            turn = np.remainder(self.rest_head_rad - first + math.pi, math.tau) - math.pi
-            pan, tilt = first + np.median(turn, axis=0)  # the pan's stop may sit at ±π
+            pan, tilt = angle_median(self.rest_head_rad)  # the pan's stop may sit at ±π
             return float(pan), float(tilt)
         head = snap.get("head_rad") or (math.nan, math.nan)
         return float(head[0]), float(head[1])

@@ -211,3 +211,12 @@ def rotation_angle(R: ArrayLike) -> FloatArray:
     """Rotation angle in radians of each matrix (...,3,3), accurate near zero."""
     out: FloatArray = np.linalg.norm(R_to_rotvec(R), axis=-1)
     return out
+
+
+def angle_median(angles: ArrayLike) -> FloatArray:
+    """Median over the rows of angles (rad), each column taken the shorter way round from the
+    first row: readings that straddle ±π (a pan stop there) have their median near ±π."""
+    a = _f64(angles)
+    turn = np.remainder(a - a[0] + np.pi, 2.0 * np.pi) - np.pi
+    out: FloatArray = a[0] + np.median(turn, axis=0)
+    return out

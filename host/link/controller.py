@@ -154,6 +154,7 @@ class Controller:
         self._last_inputs = 0
         self._updated_ns: int | None = None
         self._head_rad: tuple[float, float] | None = None
+        self._head_ns: int | None = None
         self._listeners: list[Listener] = []
         self._stats: list[StatsProvider] = []
         self._last_state_key: tuple[int, int, int, int, int] | None = None
@@ -282,6 +283,7 @@ class Controller:
             track,
             self._head_rad,
             self.link_error,
+            self._head_ns,
         )
 
     # ---- commands ------------------------------------------------------------------------
@@ -588,7 +590,7 @@ class Controller:
             self._last_position_mm, self._updated_ns = s_mm, t_ns
             self._last_inputs = sample.inputs
         elif isinstance(sample, HeadReading):
-            self._head_rad = (sample.pan_rad, sample.tilt_rad)
+            self._head_rad, self._head_ns = (sample.pan_rad, sample.tilt_rad), sample.t_ns
         for sink in self._sinks:
             sample.to(sink)
 

@@ -64,6 +64,7 @@ class Snapshot(Mapping[str, Any]):
     track: str | None = None  # "on", "below_start", "beyond_end"; None while not homed
     head_rad: tuple[float, float] | None = None  # latest head sample
     link_detail: str = ""  # why the link is where it is (the last failure while not up)
+    head_ns: int | None = None  # host time of the latest head sample
     _plain: dict[str, Any] = field(init=False, repr=False, compare=False, hash=False)
 
     def __post_init__(self) -> None:
@@ -100,6 +101,7 @@ class Snapshot(Mapping[str, Any]):
             "track": self.track,
             "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
             "age_s": None if age is None else round(age, 3),
+            "head_age_s": None if self.head_ns is None else _age_s(self.taken_ns, self.head_ns),
         }
 
 
@@ -112,3 +114,8 @@ class ControllerChange:
 
 
 Listener = Callable[[ControllerChange], None]
+
+
+def _age_s(taken_ns: int, sample_ns: int) -> float:
+    """How old a sample was when the snapshot was taken, to the microsecond."""
+    return round(max(0.0, (taken_ns - sample_ns) / 1e9), 6)

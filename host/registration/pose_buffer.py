@@ -26,7 +26,14 @@ import numpy.typing as npt
 
 from host.geometry.head import Rig
 from host.geometry.track import Track
-from host.geometry.transforms import FloatArray, R_from_quat, make_T, quat_from_R, slerp
+from host.geometry.transforms import (
+    FloatArray,
+    R_from_quat,
+    angle_median,
+    make_T,
+    quat_from_R,
+    slerp,
+)
 
 Int64Array = npt.NDArray[np.int64]
 
@@ -228,14 +235,12 @@ class AngleBuffer(SampleBuffer):
             lo, hi = j - 1, j + 2
         else:
             return super()._sample(t, v, j)
-        centre = v[j]
-        near = np.remainder(v[lo:hi] - centre + math.pi, 2.0 * math.pi) - math.pi
-        median = centre + np.median(near, axis=0)
+        median = angle_median(v[lo:hi])
         if hi == j + 1:  # the newest: only its small steps wait
-            step = np.abs(near[-2])
-            out: FloatArray = np.where(step <= self.HOLD_RAD, median, centre)
+            step = np.abs(np.remainder(v[j] - v[j - 1] + math.pi, 2.0 * math.pi) - math.pi)
+            out: FloatArray = np.where(step <= self.HOLD_RAD, median, v[j])
             return out
-        return np.asarray(median, dtype=np.float64)
+        return median
 
     def _blend(self, a: FloatArray, b: FloatArray, f: float) -> FloatArray:
         d = np.remainder(b - a + math.pi, 2.0 * math.pi) - math.pi

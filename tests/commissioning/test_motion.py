@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from host.commissioning.frames import FrameTap
-from host.commissioning.motion import RigIO
+from host.commissioning.motion import RestReadings, RigIO
 from host.control.api import ControllerLike
 
 COUNT_RAD = 1e-4
@@ -42,3 +42,23 @@ def test_without_rest_readings_the_snapshot_is_taken() -> None:
     pan, tilt = io.head_at_rest({})
     assert math.isnan(pan)
     assert math.isnan(tilt)
+
+
+def test_rest_readings_take_each_head_sample_once() -> None:
+    rest = RestReadings()
+    # polls every 20 ms, head samples every 50 ms (sample k at 50 k ms, a flicker at k = 2)
+    for poll in range(15):
+        now = 0.02 * poll + 0.001
+        k = int(now / 0.05)
+        pan = 0.3 + (COUNT_RAD if k == 2 else 0.0)
+        rest.take({"head_rad": [pan, -0.2], "head_age_s": round(now - 0.05 * k, 6)}, now)
+    assert len(rest.readings) == 6  # samples 0…5
+    assert [p for p, _ in rest.readings].count(0.3 + COUNT_RAD) == 1
+
+
+def test_rest_readings_without_the_samples_age_take_every_poll() -> None:
+    rest = RestReadings()
+    for poll in range(4):
+        rest.take({"head_rad": [0.3, -0.2]}, 0.02 * poll)
+    rest.take({"head_rad": None, "head_age_s": 0.0}, 1.0)  # no head yet: nothing
+    assert len(rest.readings) == 4

@@ -17,7 +17,7 @@ from host.link.shedding import SheddingConfig
 from protocol import PROTOCOL_VERSION, SCHEMA, ParamId, cobs
 from protocol.crc import frame_crc
 from protocol.enums import NakCode, State, Stream
-from protocol.messages import Identify, MoveTo, Status, StreamSet
+from protocol.messages import HeadSample, Identify, MoveTo, Status, StreamSet
 from tests.link.fake_controller import FakeController
 
 CFG = SessionConfig(rto_initial_s=0.02, heartbeat_interval_s=0.02, dead_after_heartbeats=10)
@@ -101,6 +101,23 @@ async def test_encoder_samples_reach_sinks_in_mm_and_host_time(rig) -> None:  # 
     assert s_mm == pytest.approx(254.0)
     assert v_mm_s == pytest.approx(25.4)
     assert ctrl.encoder_ring[-1][1] == pytest.approx(254.0)
+
+
+async def test_the_snapshot_says_how_old_its_head_sample_is(rig) -> None:  # type: ignore[no-untyped-def]
+    fake, ctrl, _ = rig
+    assert ctrl.snapshot()["head_age_s"] is None  # no head sample yet
+    await asyncio.sleep(0.35)  # a few clock-sync probes
+    now_us = (int(asyncio.get_running_loop().time() * 1e6) + fake.mcu_offset_us) & 0xFFFF_FFFF
+    fake.send(HeadSample(now_us - 30_000, 785_398, -174_533))  # exposed 30 ms ago
+    await asyncio.sleep(0.01)
+    first = ctrl.snapshot()
+    assert first["head_rad"] == [0.7854, -0.17453]
+    assert 0.03 <= first["head_age_s"] < 0.2
+    await asyncio.sleep(0.05)
+    again = ctrl.snapshot()  # the same sample, older by the wait
+    assert again["head_age_s"] - first["head_age_s"] == pytest.approx(
+        (again.taken_ns - first.taken_ns) / 1e9, abs=1e-5
+    )
 
 
 async def test_reconnect_with_backoff_refuses_commands_meanwhile(rig) -> None:  # type: ignore[no-untyped-def]
