@@ -5,7 +5,10 @@ datasheet gives a bound (resolution and noise in quadrature), but a head whose s
 the same encoder it reads stands on a count and reads that count, except when the noise crosses
 half a count: at rest it reads far better than the bound. Commissioning measures it: at every
 rest of a board run (the head still, waiting for a frame) the readings' scatter about their
-mean, pooled over the rests and both axes. Readings that never moved prove only that the
+mean, pooled over the rests and both axes, as the pose lookups take them: each the median of
+it and its two neighbours (`AngleBuffer`), so a lone count of flicker, which no frame sees, does
+not count (the raw scatter goes into the note; a moving head's readings pass that median as
+read, so in motion the raw one applies). Readings that never moved prove only that the
 noise seldom crosses a count: one step is then counted (the smallest seen, or the datasheet's
 resolution when none moved), so a quiet head is never written as exact.
 
@@ -17,10 +20,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from host.geometry.transforms import FloatArray
+from host.geometry.transforms import FloatArray, angle_median
 from host.rig import Provenance, Scalar
 from host.rig.schema import HEAD_RESOLUTION_RAD
 
@@ -29,25 +33,51 @@ REPORTED_RESOLUTION_RAD = 1e-5  # the snapshot's head angles (5 digits): smaller
 METHOD = "measured at rest (scatter of the head's readings)"
 
 
-def read_noise(rests: Sequence[FloatArray]) -> tuple[float, int] | None:
-    """(σ rad, readings) pooled over the rests ((n, 2) pan/tilt each), or None with too few."""
-    sq, dof, readings = 0.0, 0, 0
+@dataclass(frozen=True)
+class ReadNoise:
+    """The head's read noise at rest, pooled over both axes."""
+
+    sigma_rad: float  # as the pose lookups take the readings (the median of three)
+    raw_sigma_rad: float  # as read
+    readings: int
+
+
+def read_noise(rests: Sequence[FloatArray]) -> ReadNoise | None:
+    """Pooled over the rests ((n, 2) pan/tilt each), or None with too few readings."""
+    looked_up, raw = _Pool(), _Pool()
+    readings = 0
     steps: list[float] = []
     for r in rests:
         a = np.asarray(r, dtype=np.float64).reshape(-1, 2)
-        a = a[np.isfinite(a).all(axis=1)]
-        if len(a) < 2:
+        a = np.unwrap(a[np.isfinite(a).all(axis=1)], axis=0)  # a pan stop at ±π
+        if len(a) < 3:
             continue
-        dev = a - a.mean(axis=0)
-        sq += float(np.sum(dev * dev))
-        dof += 2 * (len(a) - 1)
+        looked_up.add(np.array([angle_median(a[i - 1 : i + 2]) for i in range(1, len(a) - 1)]))
+        raw.add(a)
         readings += 2 * len(a)
         moved = np.abs(np.diff(a, axis=0))
         steps += [float(x) for x in moved[moved > 0.5 * REPORTED_RESOLUTION_RAD]]
-    if readings < MIN_READINGS or dof == 0:
+    if readings < MIN_READINGS or looked_up.dof == 0:
         return None
     floor = min(steps) if steps else HEAD_RESOLUTION_RAD
-    return math.sqrt(max(sq, floor * floor) / dof), readings
+    return ReadNoise(looked_up.sigma(floor), raw.sigma(floor), readings)
+
+
+@dataclass
+class _Pool:
+    """Squared deviations of each rest's readings about their mean, and their dof."""
+
+    sq: float = 0.0
+    dof: int = 0
+
+    def add(self, a: FloatArray) -> None:
+        dev = a - a.mean(axis=0)
+        self.sq += float(np.sum(dev * dev))
+        self.dof += dev.size - a.shape[1]
+
+    def sigma(self, floor: float) -> float:
+        """σ, at least one step of `floor` over the readings (a quiet head is never exact)."""
+        return math.sqrt(max(self.sq, floor * floor) / self.dof)
 
 
 def angle_noise_update(rests: Sequence[FloatArray], views: int) -> dict[str, Scalar]:
@@ -55,7 +85,10 @@ def angle_noise_update(rests: Sequence[FloatArray], views: int) -> dict[str, Sca
     got = read_noise(rests)
     if got is None:
         return {}
-    sigma, n = got
-    note = f"{n} readings over {views} rests; a head resting between counts is not seen"
+    sigma, n = got.sigma_rad, got.readings
+    note = (
+        f"{n} readings over {views} rests, {got.raw_sigma_rad:.2g} rad as read; a head resting "
+        "between counts is not seen"
+    )
     prov = Provenance.now(METHOD, sigma, "rad", views, note)
     return {"head.angle_noise": Scalar(0.0, sigma, prov)}

@@ -31,13 +31,15 @@ def _rests(rng: np.random.Generator, sigma: float, rests: int, n: int) -> list[n
     return out
 
 
-def test_the_scatter_about_each_rest_is_the_noise() -> None:
+def test_the_scatter_about_each_rest_is_the_noise_as_read_and_as_looked_up() -> None:
     rng = np.random.default_rng(1)
     got = read_noise(_rests(rng, 3e-5, 15, 20))
     assert got is not None
-    sigma, n = got
-    assert n == 15 * 20 * 2
-    assert sigma == pytest.approx(3e-5, rel=0.08)  # 570 dof: ±3 % (1σ)
+    assert got.readings == 15 * 20 * 2
+    assert got.raw_sigma_rad == pytest.approx(3e-5, rel=0.08)  # 570 dof: ±3 % (1σ)
+    # the median of three of white noise: σ √0.449 ≈ 0.67 σ, less about the rest's mean as the
+    # neighbouring medians share readings
+    assert 0.5 * 3e-5 < got.sigma_rad < 0.7 * 3e-5
 
 
 def test_a_head_on_its_counts_reads_the_jumps_only() -> None:
@@ -53,8 +55,12 @@ def test_a_head_on_its_counts_reads_the_jumps_only() -> None:
     got = read_noise(rests)
     assert got is not None
     expected = np.sqrt(2 * 0.5 * (1 - 0.98758)) * q  # P(|N(0, 2e-5)| > 5e-5) = 1.242 %
-    assert got[0] == pytest.approx(expected, rel=0.15)
-    assert got[0] < 0.5 * HEAD_ANGLE_SIGMA_RAD
+    assert got.raw_sigma_rad == pytest.approx(expected, rel=0.15)
+    assert got.raw_sigma_rad < 0.5 * HEAD_ANGLE_SIGMA_RAD
+    # a lone count off is dropped by the lookups' median: what is left is two in a row
+    # (P ≈ 1.5e-4) and the floor of one count over the 6800 dof
+    assert got.sigma_rad < 0.25 * got.raw_sigma_rad
+    assert got.sigma_rad >= q / np.sqrt(200 * 2 * 17)
 
 
 def test_a_reading_that_never_moved_is_not_taken_as_exact() -> None:
@@ -64,7 +70,8 @@ def test_a_reading_that_never_moved_is_not_taken_as_exact() -> None:
     rests[0][3, 0] += 0.1 * REPORTED_RESOLUTION_RAD
     got = read_noise(rests)
     assert got is not None
-    assert got[0] == pytest.approx(HEAD_RESOLUTION_RAD / np.sqrt(2 * 2 * 9), rel=1e-3)
+    assert got.raw_sigma_rad == pytest.approx(HEAD_RESOLUTION_RAD / np.sqrt(2 * 2 * 9), rel=1e-3)
+    assert got.sigma_rad == pytest.approx(HEAD_RESOLUTION_RAD / np.sqrt(2 * 2 * 7), rel=1e-3)
 
 
 def test_too_few_readings_keep_the_datasheet() -> None:
@@ -76,11 +83,15 @@ def test_too_few_readings_keep_the_datasheet() -> None:
 
 def test_the_measured_noise_round_trips_through_the_rig_file() -> None:
     rng = np.random.default_rng(3)
-    updates = angle_noise_update(_rests(rng, 1.5e-5, 12, 10), 12)
+    rests = _rests(rng, 1.5e-5, 12, 10)
+    updates = angle_noise_update(rests, 12)
     spec = loads_rig(dumps_rig(with_updates(RigSpec(), updates)))
     noise = spec.head.angle_noise
+    measured = read_noise(rests)
+    assert measured is not None
     assert noise.sigma == pytest.approx(updates["head.angle_noise"].sigma)
-    assert noise.sigma == pytest.approx(1.5e-5, rel=0.15)
+    assert noise.sigma == pytest.approx(measured.sigma_rad)
+    assert f"{measured.raw_sigma_rad:.2g} rad as read" in noise.provenance.note
     assert noise.provenance.method == METHOD
     assert noise.provenance.views == 12
     assert "240 readings over 12 rests" in noise.provenance.note
@@ -108,6 +119,18 @@ def test_the_intrinsics_run_writes_the_noise_its_views_measured() -> None:
     ]
     updates = rig_update(Outcome(True, [], views, res, camera))
     assert set(updates) == {"camera.intrinsics", "head.angle_noise"}
-    assert updates["head.angle_noise"].sigma == pytest.approx(2e-5, rel=0.15)
+    measured = read_noise([v.rest_head_rad for v in views])
+    assert measured is not None
+    assert measured.raw_sigma_rad == pytest.approx(2e-5, rel=0.15)
+    assert updates["head.angle_noise"].sigma == pytest.approx(measured.sigma_rad)
     quiet = [CapturedView(v.target, "ok") for v in views]  # no readings: the datasheet stays
     assert set(rig_update(Outcome(True, [], quiet, res, camera))) == {"camera.intrinsics"}
+
+
+def test_a_head_standing_at_its_pan_stop_by_pi_reads_its_noise_not_the_wrap() -> None:
+    rng = np.random.default_rng(5)
+    rests = [np.array([np.pi, 0.3]) + rng.normal(0.0, 3e-5, (20, 2)) for _ in range(6)]
+    rests = [np.remainder(r + np.pi, 2 * np.pi) - np.pi for r in rests]  # as read: ±π
+    got = read_noise(rests)
+    assert got is not None
+    assert got.raw_sigma_rad == pytest.approx(3e-5, rel=0.2)

@@ -53,6 +53,7 @@ from host.geometry.model import manipulator_wireframe
 from host.geometry.transforms import (
     FloatArray,
     R_to_rotvec,
+    angle_median,
     invert_T,
     make_T,
     rotvec_to_R,
@@ -185,7 +186,8 @@ def commission(
                 img = img + rng.normal(0.0, projected_noise_px, img.shape)
             rest = head.rest(stood, rng, REST_READINGS)  # waiting for the frame
             rests.append(rest)
-            out.append(HandEyeView(v.s_mm, float(rest[-1, 0]), float(rest[-1, 1]), obj, img))
+            pan, tilt = angle_median(rest)  # as the commissioning runs take a rest's angles
+            out.append(HandEyeView(v.s_mm, float(pan), float(tilt), obj, img))
         return out
 
     intr_views = capture()
