@@ -59,8 +59,9 @@ def read_noise(rests: Sequence[FloatArray]) -> ReadNoise | None:
         steps += [float(x) for x in moved[moved > 0.5 * REPORTED_RESOLUTION_RAD]]
     if readings < MIN_READINGS or looked_up.dof == 0:
         return None
-    floor = min(steps) if steps else HEAD_RESOLUTION_RAD
-    return ReadNoise(looked_up.sigma(floor), raw.sigma(floor), readings)
+    # one step over all the readings: the median drops lone steps, not the readings they were in
+    floor_sq = (min(steps) if steps else HEAD_RESOLUTION_RAD) ** 2 / raw.dof
+    return ReadNoise(looked_up.sigma(floor_sq), raw.sigma(floor_sq), readings)
 
 
 @dataclass
@@ -75,9 +76,9 @@ class _Pool:
         self.sq += float(np.sum(dev * dev))
         self.dof += dev.size - a.shape[1]
 
-    def sigma(self, floor: float) -> float:
-        """σ, at least one step of `floor` over the readings (a quiet head is never exact)."""
-        return math.sqrt(max(self.sq, floor * floor) / self.dof)
+    def sigma(self, floor_sq: float) -> float:
+        """σ, its square at least `floor_sq` (a quiet head is never exact)."""
+        return math.sqrt(max(self.sq / self.dof, floor_sq))
 
 
 def angle_noise_update(rests: Sequence[FloatArray], views: int) -> dict[str, Scalar]:

@@ -99,6 +99,12 @@ class SimHead:
         """n readings (n, 2) of pan and tilt standing at `true`."""
         return np.array([[self.read(float(a), rng) for a in true] for _ in range(n)])
 
+    def looked_up(self, true: tuple[float, float], rng: np.random.Generator) -> tuple[float, float]:
+        """The angles a frame's pose lookup takes of a standing head: the median of a reading
+        and its two neighbours (`AngleBuffer`)."""
+        pan, tilt = angle_median(self.rest(np.array(true), rng, 3))
+        return float(pan), float(tilt)
+
 
 def _round(x: float, res: float) -> float:
     return x if res <= 0.0 else round(x / res) * res
@@ -251,7 +257,7 @@ def overlay_errors(
     for s, pan, tilt in poses:
         s_true = s - c.home_error_mm
         stood = (c.head.stand(pan), c.head.stand(tilt))
-        read = (c.head.read(stood[0], rng), c.head.read(stood[1], rng))
+        read = c.head.looked_up(stood, rng)
         drawn, _ = host_cam.project_world(invert_T(host_kin.T_w_c(s, *read)) @ T_w_p_host, points_p)
         true, _ = true_cam.project_world(
             invert_T(true_kin.T_w_c(s_true, *stood)) @ T_w_p_true, points_p
@@ -319,8 +325,8 @@ def camera_surveyed_workpiece(c: Commissioned) -> Commissioned:
         stood = (c.head.stand(t.pan_rad), c.head.stand(t.tilt_rad))
         T_w_c = true_kin.T_w_c(t.s_mm - c.home_error_mm, *stood)
         img = sim.render_scene(T_w_c, model, T_w_p_true, targets_p=features).image
-        read = (c.head.read(stood[0], rng), c.head.read(stood[1], rng))
-        v.s_mm, v.head_rad = t.s_mm, read
+        read = angle_median(c.head.rest(np.array(stood), rng, REST_READINGS))  # as the runs take it
+        v.s_mm, v.head_rad = t.s_mm, (float(read[0]), float(read[1]))
         uv, _ = host_cam.project(transform_points(host_kin.T_c_w(t.s_mm, *read), rough))
         for k in v.wanted:
             got = targets_run.find_target(img, uv[k])
