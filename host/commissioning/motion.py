@@ -52,7 +52,7 @@ class RestReadings:
     median of neighbours. Every poll counts where the snapshot gives no `head_age_s`."""
 
     readings: list[tuple[float, float]] = field(default_factory=list)
-    _last_sample_s: float = math.nan
+    _last_sample_s: float = field(default=math.nan, init=False, repr=False)
 
     def take(self, snap: Mapping[str, Any], now_s: float) -> None:
         """One poll's snapshot, taken at monotonic `now_s`."""

@@ -73,9 +73,12 @@ class Snapshot(Mapping[str, Any]):
     @property
     def age_s(self) -> float | None:
         """How old the newest controller data was when the snapshot was taken."""
-        if self.updated_ns is None:
-            return None
-        return max(0.0, (self.taken_ns - self.updated_ns) / 1e9)
+        return None if self.updated_ns is None else _age_s(self.taken_ns, self.updated_ns)
+
+    @property
+    def head_age_s(self) -> float | None:
+        """How old the latest head sample was when the snapshot was taken."""
+        return None if self.head_ns is None else _age_s(self.taken_ns, self.head_ns)
 
     def __getitem__(self, key: str) -> Any:
         return self._plain[key]
@@ -88,7 +91,7 @@ class Snapshot(Mapping[str, Any]):
 
     def _as_plain(self) -> dict[str, Any]:
         """msgpack- and JSON-ready values: names, or numbers for values we do not know."""
-        age = self.age_s
+        age, head_age = self.age_s, self.head_age_s
         return {
             "link": self.link.value,
             "link_detail": self.link_detail,
@@ -101,7 +104,7 @@ class Snapshot(Mapping[str, Any]):
             "track": self.track,
             "head_rad": None if self.head_rad is None else [round(a, 5) for a in self.head_rad],
             "age_s": None if age is None else round(age, 3),
-            "head_age_s": None if self.head_ns is None else _age_s(self.taken_ns, self.head_ns),
+            "head_age_s": None if head_age is None else round(head_age, 6),
         }
 
 
@@ -117,5 +120,5 @@ Listener = Callable[[ControllerChange], None]
 
 
 def _age_s(taken_ns: int, sample_ns: int) -> float:
-    """How old a sample was when the snapshot was taken, to the microsecond."""
-    return round(max(0.0, (taken_ns - sample_ns) / 1e9), 6)
+    """How old a sample was when the snapshot was taken (never negative), s."""
+    return max(0.0, (taken_ns - sample_ns) / 1e9)

@@ -237,15 +237,20 @@ class AngleBuffer(SampleBuffer):
             return super()._sample(t, v, j)
         median = angle_median(v[lo:hi])
         if hi == j + 1:  # the newest: only its small steps wait
-            step = np.abs(np.remainder(v[j] - v[j - 1] + math.pi, 2.0 * math.pi) - math.pi)
+            step = np.abs(_turn(v[j - 1], v[j]))
             out: FloatArray = np.where(step <= self.HOLD_RAD, median, v[j])
             return out
         return median
 
     def _blend(self, a: FloatArray, b: FloatArray, f: float) -> FloatArray:
-        d = np.remainder(b - a + math.pi, 2.0 * math.pi) - math.pi
-        out: FloatArray = a + f * d
+        out: FloatArray = a + f * _turn(a, b)
         return out
+
+
+def _turn(a: FloatArray, b: FloatArray) -> FloatArray:
+    """From angles a to b the shorter way round (rad, each in [-π, π))."""
+    out: FloatArray = np.remainder(b - a + math.pi, 2.0 * math.pi) - math.pi
+    return out
 
 
 class TransformBuffer(SampleBuffer):
