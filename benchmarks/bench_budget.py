@@ -16,8 +16,8 @@ over the rigs: with few rigs the measured σ is itself uncertain (~1/√(2·rigs
 
 First, the joint covariance itself: the normalised error (NEES) of intrinsics, M_cr and
 placement against the truth, with the joint block, with it dropped (block-diagonal), and
-without the head angles' share in the hand-eye covariance (what `calibrate head` writes until
-it passes the head's noise to `calibrate_handeye`).
+without the head angles' share in the hand-eye covariance (each view's share is the rest
+median's σ, `head_noise.rest_sigma`, as `calibrate head` passes it).
 
 Cases (the workpiece frame is what differs):
 - `surveyed`: the workpiece surveyed independently (total station, 1 mm / 1 mrad);
@@ -107,8 +107,8 @@ def main() -> None:
             f"nees_{tag}_mean: {np.mean([v for v, _ in values]):.1f} "
             f"(dof {values[0][1]}; median {np.median([v for v, _ in values]):.1f})"
         )
-    # the same views without the head angles' share in the hand-eye covariance (as
-    # calibrate head runs until it passes the head's noise): on the first four seeds
+    # the same views without the head angles' share in the hand-eye covariance: on the first
+    # four seeds
     plain = [joint_nees(commission(seed, head_noise_modelled=False)) for seed in range(1, 5)]
     print(f"nees_joint_without_head_share_mean: {np.mean([v for v, _ in plain]):.1f} (4 rigs)")
     cases = {

@@ -53,6 +53,9 @@ class HandEyeView:
     tilt_rad: float
     object_points: FloatArray
     image_points: FloatArray
+    # σ of the head angles as this view took them (a rest's median reads better than one
+    # reading: commissioning.head_noise.rest_sigma); 0: taken as exact
+    head_sigma_rad: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -100,19 +103,18 @@ def calibrate_handeye(
     T_w_b: ArrayLike | None = None,
     cov_T_w_b: ArrayLike | None = None,
     camera_cov: ArrayLike | None = None,
-    head_sigma_rad: float = 0.0,
     home_sigma_mm: float = 0.0,
 ) -> HandEyeResult:
     """Solve M_cr and T_w_track; T_w_b is the target's surveyed world pose (default: world = b).
 
     `camera_cov` (10×10 over CAMERA_KEYS, e.g. from the intrinsics calibration) adds the
     camera's own uncertainty to the result's: a focal length off by 0.1 % moves the camera by
-    0.1 % of the board distance, far more than the pixel noise does. `head_sigma_rad` (the
-    head angles' read noise) adds theirs: it turns a whole view at once, so with tens of
-    corners a view it can outweigh the pixel noise in M_cr's rotation. `home_sigma_mm` (the σ
-    of the controller's zero the views' arc lengths were computed with) adds that of the arc
-    lengths: on a straight a home error and a shift of the track along it are one and the same,
-    so the fit puts the home's error into the track placement.
+    0.1 % of the board distance, far more than the pixel noise does. Each view's
+    `head_sigma_rad` (its head angles' error) adds theirs: it turns a whole view at once, so
+    with tens of corners a view it can outweigh the pixel noise in M_cr's rotation.
+    `home_sigma_mm` (the σ of the controller's zero the views' arc lengths were computed with)
+    adds that of the arc lengths: on a straight a home error and a shift of the track along it
+    are one and the same, so the fit puts the home's error into the track placement.
     """
     if len(views) < MIN_VIEWS:
         raise ValueError(f"need at least {MIN_VIEWS} views, got {len(views)}")
@@ -131,9 +133,10 @@ def calibrate_handeye(
         cam_cov = np.asarray(camera_cov, dtype=np.float64)
         A = _camera_term(problem, M_cr, T_b_k, J, cam_cov)
         cov, cross = cov + A @ cam_cov @ A.T, A @ cam_cov
-    if head_sigma_rad > 0.0:
+    head_var = np.repeat([v.head_sigma_rad**2 for v in views], 2)  # pan, tilt per view
+    if head_var.any():
         A_h = _head_term(problem, views, track, mount, M_cr, T_b_k, J)
-        cov = cov + head_sigma_rad**2 * (A_h @ A_h.T)
+        cov = cov + (A_h * head_var) @ A_h.T
     home_cross = None
     if home_sigma_mm > 0.0:
         A_s = _home_term(views, track, mount, problem, M_cr, T_b_k, J)

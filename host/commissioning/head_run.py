@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from host.calibration.handeye import HandEyeResult, HandEyeView, adjoint, calibrate_handeye
+from host.commissioning.head_noise import rest_sigma
 from host.commissioning.intrinsics_run import CapturedView
 from host.commissioning.report import Page, per_view_figure, residual_figure, text_table
 from host.experiments.budget import BudgetInputs, overlay_sigma
@@ -108,16 +109,17 @@ class HeadOutcome:
         return out
 
 
-def hand_eye_views(views: list[CapturedView]) -> list[HandEyeView]:
-    """The kept views as hand-eye observations (arc length and head angles as the host saw them)."""
+def hand_eye_views(views: list[CapturedView], head_sigma_rad: float = 0.0) -> list[HandEyeView]:
+    """The kept views as hand-eye observations (arc length and head angles as the host saw them),
+    each with the σ of its head angles: the looked-up read noise `head_sigma_rad` scaled to the
+    readings its rest's median took."""
     out = []
     for v in views:
         det = v.detection
         if v.status != "ok" or det is None or not np.isfinite([v.s_mm, *v.head_rad]).all():
             continue
-        out.append(
-            HandEyeView(v.s_mm, v.head_rad[0], v.head_rad[1], det.object_points, det.image_points)
-        )
+        sigma = rest_sigma(head_sigma_rad, len(v.rest_head_rad))
+        out.append(HandEyeView(v.s_mm, *v.head_rad, det.object_points, det.image_points, sigma))
     return out
 
 
@@ -131,10 +133,11 @@ def judge_head(
 ) -> HeadOutcome:  # fmt: skip
     """Solve M_cr and the track placement from the kept views, and judge them.
 
-    `home_sigma_mm` (the zero's σ) and `head_sigma_rad` (the head angles' read noise) widen the
-    result's covariance by what they move it (host.calibration.handeye).
+    `home_sigma_mm` (the zero's σ) and `head_sigma_rad` (the head angles' read noise as the
+    lookups take them, scaled to each view's rest) widen the result's covariance by what they
+    move it (host.calibration.handeye).
     """
-    obs = hand_eye_views(views)
+    obs = hand_eye_views(views, head_sigma_rad)
     nominal = (rig.T_r_c, rig.track.T_w_track)
     if len(obs) < limits.min_views:
         blurred = sum(v.status == "blurred" for v in views)
@@ -148,7 +151,7 @@ def judge_head(
         while True:  # a view whose pose reading was off (still ringing) would bias M_cr
             res = calibrate_handeye(
                 obs, rig.track, camera, rig.T_t_r, T_w_b, cov_T_w_b, camera_cov,
-                head_sigma_rad=head_sigma_rad, home_sigma_mm=home_sigma_mm,
+                home_sigma_mm=home_sigma_mm,
             )  # fmt: skip
             rms = res.per_view_rms_px
             limit = max(OUTLIER_FACTOR * float(np.median(rms)), OUTLIER_FLOOR_PX)

@@ -160,3 +160,25 @@ def test_synthetic_scene_keeps_ground_truth() -> None:
         T_w_c, manipulator_wireframe(), np.eye(4), pts
     )
     np.testing.assert_array_equal(frame.image, again.image)
+
+
+def test_each_views_head_sigma_adds_its_own_share() -> None:
+    """The head angles' share is per view: none without σ, and with σ on every view the sum of
+    what each view's σ alone adds (their errors are independent)."""
+    rig = Rig()
+    T_w_b = make_T(rot_z(0.3), [-200.0, -1400.0, 0.0])
+    views = handeye_views(rig, T_w_b, 8, seed=5)
+    local = rig.track.with_origin(np.eye(4))
+
+    def cov(sigmas: list[float]) -> np.ndarray:
+        with_sigma = [
+            dataclasses.replace(v, head_sigma_rad=s) for v, s in zip(views, sigmas, strict=True)
+        ]
+        return calibrate_handeye(with_sigma, local, CameraModel(), T_w_b=T_w_b).cov_M_cr
+
+    plain = cov([0.0] * len(views))
+    shares = [cov([3e-5 if j == i else 0.0 for j in range(len(views))]) - plain
+              for i in range(len(views))]  # fmt: skip
+    every = cov([3e-5] * len(views)) - plain
+    assert np.trace(every) > 0.1 * np.trace(plain)  # the share is not lost in the pixel noise
+    assert np.allclose(every, sum(shares), rtol=1e-6, atol=1e-6 * np.abs(every).max())

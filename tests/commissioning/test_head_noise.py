@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from host.calibration.board import Detection
 from host.calibration.intrinsics import calibrate_with_rejection
 from host.commissioning.head_noise import (
     METHOD,
@@ -13,7 +14,9 @@ from host.commissioning.head_noise import (
     REPORTED_RESOLUTION_RAD,
     angle_noise_update,
     read_noise,
+    rest_sigma,
 )
+from host.commissioning.head_run import hand_eye_views
 from host.commissioning.intrinsics_run import CapturedView, Outcome, rig_update
 from host.commissioning.plan import ViewTarget
 from host.geometry.camera import CameraModel
@@ -134,3 +137,25 @@ def test_a_head_standing_at_its_pan_stop_by_pi_reads_its_noise_not_the_wrap() ->
     got = read_noise(rests)
     assert got is not None
     assert got.raw_sigma_rad == pytest.approx(3e-5, rel=0.2)
+
+
+@pytest.mark.parametrize("n", [3, 5, 10, 20])
+def test_a_rests_median_reads_as_rest_sigma_says(n: int) -> None:
+    """The σ of a median of n Gaussian readings, from that of a median of three: within 10 %."""
+    rng = np.random.default_rng(n)
+    three = float(np.std(np.median(rng.normal(0.0, 1.0, (40_000, 3)), axis=1)))
+    of_n = float(np.std(np.median(rng.normal(0.0, 1.0, (40_000, n)), axis=1)))
+    assert rest_sigma(three, n) == pytest.approx(of_n, rel=0.1)
+    assert rest_sigma(three, 1) == three  # a lone reading: the looked-up σ stands
+
+
+def test_a_hand_eye_view_carries_the_sigma_of_its_own_rest() -> None:
+    """`calibrate head` gives each view the looked-up σ scaled to its rest's readings."""
+    det = Detection(np.arange(4, dtype=np.int32), np.zeros((4, 3)), np.zeros((4, 2)), 1.0)
+    views = [
+        CapturedView(ViewTarget(0.0, 0.0, 0.0, f"v{n}"), "ok", det, s_mm=10.0, head_rad=(0.1, 0.2),
+                     rest_head_rad=np.zeros((n, 2)))
+        for n in (0, 3, 12)
+    ]  # fmt: skip
+    got = [v.head_sigma_rad for v in hand_eye_views(views, 2e-5)]
+    assert got == pytest.approx([2e-5, 2e-5, 1e-5])

@@ -33,7 +33,7 @@ from host.calibration.board import BoardDetector
 from host.calibration.handeye import HandEyeView, adjoint, calibrate_handeye
 from host.calibration.intrinsics import calibrate_with_rejection
 from host.commissioning import targets_run
-from host.commissioning.head_noise import angle_noise_update
+from host.commissioning.head_noise import angle_noise_update, rest_sigma
 from host.commissioning.head_run import HeadOutcome, head_rig_update
 from host.commissioning.intrinsics_run import Outcome, rig_update
 from host.commissioning.plan import IMAGE_TARGETS, board_plan
@@ -204,12 +204,15 @@ def commission(
     spec = with_updates(spec, {"track.home": home})
     if measure_head:
         spec = with_updates(spec, angle_noise_update(rests, len(rests)))
-    head_sig = spec.head.angle_noise.sigma
+    # each view's head share as `calibrate head` passes it (the rest's median)
+    share = rest_sigma(spec.head.angle_noise.sigma, REST_READINGS) if head_noise_modelled else 0.0
+    views = [dataclasses.replace(v, head_sigma_rad=share)
+             for v in (intr_views if reuse_views else capture())]  # fmt: skip
     cam_cov = np.array(spec.camera.intrinsics.covariance)
     cov_b = np.diag([BOARD_SURVEY_SIGMA_RAD**2] * 3 + [BOARD_SURVEY_SIGMA_MM**2] * 3)
     solved = calibrate_handeye(
-        intr_views if reuse_views else capture(), host_rig.track, res.camera, host_rig.T_t_r,
-        setup.T_w_b_surveyed, cov_b, cam_cov, head_sig if head_noise_modelled else 0.0, home_sig,
+        views, host_rig.track, res.camera, host_rig.T_t_r, setup.T_w_b_surveyed, cov_b, cam_cov,
+        home_sig,
     )  # fmt: skip
     outcome = HeadOutcome(True, [], [], solved)
     spec = with_updates(spec, head_rig_update(outcome, True, home_sig))
